@@ -33,18 +33,25 @@ def _safe_sqrt_jvp(primals, tangents):
     return safe_sqrt(x, floor), dx * 0.5 / jnp.sqrt(jnp.maximum(x, floor))
 
 
+def _sum_sq(v, axis: int, keepdims: bool):
+    if axis == 0:  # written out: XLA's CPU reduction over a leading axis of 3 is slow
+        sq = sum(v[k] * v[k] for k in range(v.shape[0]))
+        return sq[None] if keepdims else sq
+    return jnp.sum(v * v, axis=axis, keepdims=keepdims)
+
+
 def norm(v, axis: int = 0, keepdims: bool = False):
     """Euclidean norm with a finite derivative at v = 0 (double-where)."""
-    sq = jnp.sum(v * v, axis=axis, keepdims=keepdims)
+    sq = _sum_sq(v, axis, keepdims)
     ok = sq > tiny(v.dtype)
     return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1)), 0)
 
 
 def normalize(v, axis: int = 0):
     """v/|v|; the zero vector maps to zero with a zero (not NaN) derivative."""
-    sq = jnp.sum(v * v, axis=axis, keepdims=True)
+    sq = _sum_sq(v, axis, True)
     ok = sq > tiny(v.dtype)
-    return jnp.where(ok, v * jax.lax.rsqrt(jnp.where(ok, sq, 1)), 0)
+    return jnp.where(ok, v / jnp.sqrt(jnp.where(ok, sq, 1)), 0)
 
 
 def safe_pow(x, beta):

@@ -42,30 +42,39 @@ def tmin_for(scale) -> Float[Array, ""]:
 
 
 def _roots(o, d, centers, radii, origin, tmin):
-    """For every ray and sphere (P, N): near/far roots allowed, and their values.
+    """For every sphere and ray (N, P): may the near / far root be used, and their values.
 
     The origin rule: for o on sphere k, b = r·(n_out·d), so b < 0 means inward.
     """
-    c = centers.T[:, None, :]  # (3, 1, N)
-    f = o[:, :, None] - c  # (3, P, N)
-    b = dot(f, d[:, :, None])
-    l = f - b * d[:, :, None]
-    disc = radii[None, :] ** 2 - dot(l, l)
+    c = centers.T[:, :, None]  # (3, N, 1)
+    f = o[:, None, :] - c  # (3, N, P)
+    dd = d[:, None, :]
+    b = dot(f, dd)
+    l = f - b * dd
+    disc = radii[:, None] ** 2 - dot(l, l)
     meets = disc > 0
     sq = jnp.sqrt(jnp.maximum(disc, 0))
     near, far = -b - sq, -b + sq
-    is_origin = origin[:, None] == jnp.arange(centers.shape[0])[None, :]
+    is_origin = origin[None, :] == jnp.arange(centers.shape[0])[:, None]
     near_ok = meets & (near > tmin) & ~is_origin
     far_ok = meets & (far > tmin) & (~is_origin | (b < 0))
     return near_ok, far_ok, near, far
 
 
-def hit_distances(o, d, centers, radii, origin: Int[Array, " p"], tmin):
-    """(P, N) distance to each sphere's first valid root (+inf where none), and
-    whether that root is the far one. Not differentiated (a discrete choice)."""
-    near_ok, far_ok, near, far = jax.lax.stop_gradient(_roots(o, d, centers, radii, origin, tmin))
-    t = jnp.where(near_ok, near, jnp.where(far_ok, far, jnp.inf))
-    return t, ~near_ok
+def nearest(o, d, centers, radii, origin: Int[Array, " p"], tmin, exclude=None):
+    """Per ray: distance to the nearest valid root (+inf if none), which sphere, and
+    whether it is that sphere's far root. Not differentiated (a discrete choice)."""
+    o, d, centers, radii = jax.lax.stop_gradient((o, d, centers, radii))
+    near_ok, far_ok, near, far = _roots(o, d, centers, radii, origin, tmin)
+    if exclude is not None:  # silhouette mode: the same rays with one sphere removed
+        keep = exclude[None, :] != jnp.arange(centers.shape[0])[:, None]
+        near_ok, far_ok = near_ok & keep, far_ok & keep
+    # Far roots carry a minus sign (both roots are > tmin > 0), so one argmin over |t|
+    # and one gather answer all three questions: the form XLA's CPU backend runs fastest.
+    signed = jnp.where(near_ok, near, jnp.where(far_ok, -far, jnp.inf))
+    idx = jnp.argmin(jnp.abs(signed), axis=0)
+    t = jnp.take_along_axis(signed, idx[None], axis=0)[0]
+    return jnp.abs(t), idx, t < 0
 
 
 def sphere_geometry(o, d, c, r):
@@ -86,13 +95,10 @@ class Hit:
     """
 
     def __init__(self, o, d, centers, radii, origin, tmin, exclude=None):
-        t_all, far = hit_distances(o, d, centers, radii, origin, tmin)
-        if exclude is not None:  # silhouette mode: the same rays with one sphere removed
-            t_all = jnp.where(exclude[:, None] == jnp.arange(centers.shape[0])[None, :], jnp.inf, t_all)
-        idx = jnp.argmin(t_all, axis=1)
-        self.found: Bool[Array, " p"] = jnp.isfinite(jnp.min(t_all, axis=1))
+        best, idx, far = nearest(o, d, centers, radii, origin, tmin, exclude)
+        self.found: Bool[Array, " p"] = jnp.isfinite(best)
         self.index: Int[Array, " p"] = jnp.where(self.found, idx, -1)
-        sign = jnp.where(jnp.take_along_axis(far, idx[:, None], axis=1)[:, 0], 1, -1).astype(o.dtype)
+        sign = jnp.where(far, 1, -1).astype(o.dtype)
         b, l, sq = sphere_geometry(o, d, centers.T[:, idx], radii[idx])
         self.t = jnp.where(self.found, -b + sign * sq, 0)  # no inf in later arithmetic
         self.normal_out = jnp.where(self.found, (l + sign * sq * d) / radii[idx], 0)
@@ -106,5 +112,6 @@ def transmission(o, d, centers, radii, origin, tmin, opacity_factor) -> Float[Ar
     (shadow rays pass straight through glass, weighted kt² per sphere, DECK.md §3).
     A sphere counts if the ray meets it ahead of the origin (its far root is ahead).
     """
-    _, blocked, _, _ = jax.lax.stop_gradient(_roots(o, d, centers, radii, origin, tmin))
-    return jnp.prod(jnp.where(blocked, opacity_factor[None, :], 1), axis=1)
+    _, blocked, _, _ = _roots(*jax.lax.stop_gradient((o, d, centers, radii)), origin, tmin)
+    factor = jnp.where(blocked, opacity_factor[:, None], 1)
+    return jnp.prod(factor, axis=0)

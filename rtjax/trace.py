@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
@@ -40,7 +41,7 @@ def prepare(s: Structure, p: Params) -> Material:
         ks=p.ks * ~jnp.asarray(s.mask(MIRROR)),
         beta=p.beta,
         shadow_factor=jnp.where(glass, p.kt**2, 0),
-        lights=normalize(p.light_dirs),
+        lights=normalize(p.light_dirs, axis=-1),
         tmin=spheres.tmin_for(spheres.scene_scale(p.centers, p.radii, p.eye)),
     )
 
@@ -122,4 +123,7 @@ def trace(
         d = normalize(next_direction(s, p, idx, d, n, entering))
         o = hit.point
         origin = hit.index
+        # One level's results are materialised before the next starts: without this
+        # barrier XLA fuses across levels and recomputes shared work many times over.
+        o, d, origin, weight, colour = jax.lax.optimization_barrier((o, d, origin, weight, colour))
     return colour
