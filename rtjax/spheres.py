@@ -94,7 +94,7 @@ class Hit:
     scene sits far from the origin (no large o + t·d − c cancellation).
     """
 
-    def __init__(self, o, d, centers, radii, origin, tmin, exclude=None):
+    def __init__(self, o, d, centers, radii, origin, tmin, exclude=None, force=None):
         best, idx, far = nearest(o, d, centers, radii, origin, tmin, exclude)
         self.found: Bool[Array, " p"] = jnp.isfinite(best)
         self.index: Int[Array, " p"] = jnp.where(self.found, idx, -1)

@@ -86,44 +86,79 @@ def next_direction(s: Structure, p: Params, idx, d, n, entering):
     return jnp.where(glass & (k > 0), refracted, reflected)
 
 
+def _segment(s: Structure, p: Params, m: Material, state, first_level: bool, toggles):
+    """One segment of the chain for every ray: hit, local light, the next ray."""
+    o, d, origin, weight, colour = state
+    if first_level and toggles is not None:
+        hit = spheres.Hit(o, d, p.centers, p.radii, origin, m.tmin, *toggles)
+    else:
+        hit = spheres.Hit(o, d, p.centers, p.radii, origin, m.tmin)
+    entering = dot(hit.normal_out, d) < 0
+    n = jnp.where(entering, hit.normal_out, -hit.normal_out)
+    local = shade_hit(s, p, m, hit, n, -d)
+    colour = colour + weight * jnp.where(hit.found, local, p.background[:, None])
+    if not s.needs_secondary_rays:
+        return o, d, origin, jnp.zeros_like(weight), colour
+    idx = jnp.maximum(hit.index, 0)
+    alive = hit.found & jnp.asarray(s.mask(MIRROR, GLASS))[idx]
+    glass = jnp.asarray(s.mask(GLASS))[idx]
+    weight = jnp.where(alive, weight * jnp.where(glass, p.kt[idx], 1), 0)
+    d = normalize(next_direction(s, p, idx, d, n, entering))
+    return hit.point, d, hit.index, weight, colour
+
+
 def trace(
     s: Structure,
     p: Params,
     o: Float[Array, "3 p"],
     d: Float[Array, "3 p"],
     depth: int,
-    first_hit: spheres.Hit | None = None,
+    toggles: tuple[Int[Array, " p"], Int[Array, " p"]] | None = None,
 ) -> Float[Array, "3 p"]:
     """Colour seen along each ray (unclamped), following the chain for `depth` more segments.
 
-    `first_hit` replaces the first intersection pass (the silhouette mode uses it to
-    toggle one sphere in or out of a pixel's view).
+    After the first segment, a segment runs only if some ray is still alive (a
+    `lax.cond`, which skips the work at run time and differentiates in both modes):
+    on most tiles of most scenes the chain ends after one or two segments.
+    `toggles` = (exclude, force), per ray a sphere index or −1, alter the first
+    segment for the silhouette mode (see `spheres.Hit`).
     """
     m = prepare(s, p)
-    continues = jnp.asarray(s.mask(MIRROR, GLASS))
-    glass = jnp.asarray(s.mask(GLASS))
-    origin: Int[Array, " p"] = jnp.full(o.shape[1:], -1, jnp.int32)
-    weight = jnp.ones(o.shape[1:], o.dtype)
-    colour = jnp.zeros_like(o)
-    for level in range(depth + 1):
-        if level == 0 and first_hit is not None:
-            hit = first_hit
-        else:
-            hit = spheres.Hit(o, d, p.centers, p.radii, origin, m.tmin)
-        entering = dot(hit.normal_out, d) < 0
-        n = jnp.where(entering, hit.normal_out, -hit.normal_out)
-        local = shade_hit(s, p, m, hit, n, -d)
-        seen = jnp.where(hit.found, local, p.background[:, None])
-        colour = colour + weight * seen
-        if level == depth or not s.needs_secondary_rays:
-            break
-        idx = jnp.maximum(hit.index, 0)
-        alive = hit.found & continues[idx]
-        weight = jnp.where(alive, weight * jnp.where(glass[idx], p.kt[idx], 1), 0)
-        d = normalize(next_direction(s, p, idx, d, n, entering))
-        o = hit.point
-        origin = hit.index
-        # One level's results are materialised before the next starts: without this
-        # barrier XLA fuses across levels and recomputes shared work many times over.
-        o, d, origin, weight, colour = jax.lax.optimization_barrier((o, d, origin, weight, colour))
-    return colour
+    state = (
+        o,
+        d,
+        jnp.full(o.shape[1:], -1, jnp.int32),
+        jnp.ones(o.shape[1:], o.dtype),
+        jnp.zeros_like(o),
+    )
+    state = _segment(s, p, m, state, True, toggles)
+    for _ in range(depth if s.needs_secondary_rays else 0):
+        state = jax.lax.cond(
+            jnp.any(state[3] > 0),
+            lambda st: _segment(s, p, m, st, False, None),
+            lambda st: st,
+            state,
+        )
+    return state[4]
+
+
+def trace_tiled(s: Structure, p: Params, o, d, depth: int, tile: int, toggles=None) -> Float[Array, "3 p"]:
+    """`trace` over tiles of `tile` rays, one after another (`lax.map`).
+
+    Tiles keep each segment's arrays small (cache-resident on a CPU) and let a tile
+    whose rays have all ended skip the rest of its chain. Neighbouring pixels tend
+    to end together (a patch of background, an opaque sphere), so image-order tiles work.
+    """
+    n = o.shape[1]
+    if n <= tile:
+        return trace(s, p, o, d, depth, toggles)
+    count = -(-n // tile)
+    pad = count * tile - n
+
+    def split(a):  # (..., P) → (count, ..., tile), padding with copies of the last ray
+        a = jnp.concatenate([a, jnp.repeat(a[..., -1:], pad, axis=-1)], axis=-1) if pad else a
+        return jnp.moveaxis(a.reshape(a.shape[:-1] + (count, tile)), -2, 0)
+
+    args = (split(o), split(d), None if toggles is None else tuple(split(t) for t in toggles))
+    out = jax.lax.map(lambda a: trace(s, p, a[0], a[1], depth, a[2]), args)
+    return jnp.moveaxis(out, 0, -2).reshape(3, count * tile)[:, :n]
