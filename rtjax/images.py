@@ -15,7 +15,7 @@ from rtjax.atomic import atomic_path
 from rtjax.errors import ImageError
 from rtjax.sunraster import SUN_MAGIC, is_sunraster_path, read_sunraster, write_sunraster
 
-__all__ = ["FLOAT_EXTENSIONS", "load_image", "load_image_uint8", "save_image", "to_uint8"]
+__all__ = ["FLOAT_EXTENSIONS", "check_writable", "load_image", "load_image_uint8", "save_image", "to_uint8"]
 
 # Formats whose pixels are floats: written as value/255 so a round trip keeps the levels.
 FLOAT_EXTENSIONS = (".exr", ".hdr", ".rgbe", ".pfm")
@@ -39,6 +39,17 @@ def to_uint8(image: object) -> np.ndarray:
     if bad:
         raise ImageError(f"image has {bad} non-finite values")
     return np.floor(np.clip(values, 0.0, 255.0) + 0.5).astype(np.uint8)
+
+
+def check_writable(path: str | os.PathLike) -> None:
+    """Raise ImageError now if no writer handles `path`'s extension (before any rendering)."""
+    name = os.fspath(path)
+    if is_sunraster_path(name):
+        return
+    import OpenImageIO as oiio
+
+    if oiio.ImageOutput.create(name) is None:
+        raise ImageError(f"{name}: no image format for this extension ({_oiio_message(oiio.geterror())})")
 
 
 def save_image(path: str | os.PathLike, image: object, *, assignment_order: bool = False) -> None:

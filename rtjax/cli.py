@@ -1,0 +1,157 @@
+"""The `rtjax` command: `render` decks (and, wired to `fitting`, `fit`; `bench`).
+
+Bad input (a deck, an image, an option) is one line on stderr, `file:line: ...`,
+exit code 2, and nothing written; the command line is the only place that sees
+both `rtjax` and `fitting`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+from .errors import DeckError, RtjaxError
+
+#: Image sides beyond this need --allow-large (a typo like `size 40000` would take minutes and GBs).
+MAX_SIDE = 16384
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, found {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a number ≥ 1, found {value}")
+    return value
+
+
+def _depth(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number ≥ 0, found {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number ≥ 0, found {value}")
+    return value
+
+
+def _edge_width(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of pixels, found {text!r}") from None
+    if not (0 <= value <= 16):
+        raise argparse.ArgumentTypeError(f"expected a width in [0, 16] pixels, found {text}")
+    return value
+
+
+def resolve_output(outdir: str, name: str, *, allow_any: bool) -> str:
+    """Where a `rend` name goes: inside `outdir` unless any path is explicitly allowed."""
+    if os.path.isabs(name):
+        if not allow_any:
+            raise ValueError(f"rend: output path {name!r} is absolute; pass --allow-any-path to allow it")
+        return name
+    path = os.path.normpath(os.path.join(outdir, name))
+    inside = os.path.commonpath([os.path.abspath(outdir), os.path.abspath(path)]) == os.path.abspath(outdir)
+    if not inside and not allow_any:
+        raise ValueError(f"rend: output path {name!r} leaves the output folder; pass --allow-any-path to allow it")
+    return path
+
+
+def _plan(deck, args) -> list[tuple[object, str]]:
+    """Check every frame before rendering any: paths, formats, sizes. Nothing is written yet."""
+    from .images import check_writable
+
+    plan = []
+    for frame in deck.frames:
+        try:
+            path = resolve_output(args.outdir, frame.output, allow_any=args.allow_any_path)
+        except ValueError as e:
+            raise DeckError(deck.path, frame.line, str(e)) from None
+        try:
+            check_writable(path)
+        except RtjaxError as e:
+            raise DeckError(deck.path, frame.line, f"rend: {e}") from None
+        s = frame.scene.structure
+        if max(s.width, s.height) > MAX_SIDE and not args.allow_large:
+            raise DeckError(
+                deck.path,
+                frame.line,
+                f"rend: the image would be {s.width}×{s.height}, beyond {MAX_SIDE} pixels a side; pass --allow-large to render it",
+            )
+        plan.append((frame, path))
+    return plan
+
+
+def cmd_render(args) -> int:
+    from .deck import load_deck
+
+    deck = load_deck(args.deck)
+    if not deck.frames:
+        raise DeckError(deck.path, None, "the deck has no rend line: nothing to render")
+    plan = _plan(deck, args)
+    if args.dtype == "float64":
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+    from .images import save_image
+    from .render import render
+
+    for frame, path in plan:
+        start = time.perf_counter()
+        image = render(frame.scene, depth=args.depth, spp=args.spp, dtype=args.dtype)
+        image.block_until_ready()
+        elapsed = time.perf_counter() - start
+        folder = os.path.dirname(path)
+        if folder:
+            os.makedirs(folder, exist_ok=True)
+        save_image(path, image, assignment_order=args.assignment_order)
+        written = [path]
+        if args.png and not path.lower().endswith(".png"):
+            preview = os.path.splitext(path)[0] + ".png"
+            save_image(preview, image)
+            written.append(preview)
+        s = frame.scene.structure
+        print(f"{' + '.join(written)}  {s.width}x{s.height}  {elapsed:.2f} s", flush=True)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="rtjax", description="A differentiable JAX ray tracer for sphere scene decks.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("render", help="render every `rend` of a deck", description="Render every `rend` line of DECK.")
+    r.add_argument("deck", help="the deck file (.dat)")
+    r.add_argument("-o", "--outdir", default=".", help="folder for the `rend` files (default: the current folder)")
+    r.add_argument("--depth", type=_depth, default=None, help="reflection/refraction depth (default: 10 with mirrors or glass, else 0)")
+    r.add_argument("--spp", type=_positive_int, default=1, help="K for K×K samples per pixel (default 1)")
+    r.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="arithmetic precision (default float32)")
+    r.add_argument("--edges", type=_edge_width, default=0.0, metavar="WIDTH",
+                   help="silhouette-aware (antialiased, edge-differentiable) mode with this edge width in pixels (default 0: off)")
+    r.add_argument("--png", action="store_true", help="also write a PNG preview beside each Sun raster file")
+    r.add_argument("--assignment-order", action="store_true",
+                   help="write Sun raster pixels R,G,B as the assignment's code did (standard viewers swap red and blue)")
+    r.add_argument("--allow-any-path", action="store_true", help="allow `rend` paths that are absolute or leave OUTDIR")
+    r.add_argument("--allow-large", action="store_true", help=f"allow images beyond {MAX_SIDE} pixels a side")
+    r.set_defaults(run=cmd_render)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.run(args)
+    except RtjaxError as e:
+        print(f"{e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted: no partial file was written", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,184 @@
+"""The renderer against analytic pixels and the independent NumPy reference (tests/reference.py)."""
+
+from __future__ import annotations
+
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import SCENES, scene_from_text
+
+import reference
+import rtjax
+
+# An 11×11 image whose centre pixel looks exactly at the origin along +y.
+CAMERA = """
+eyep 0 -100 0
+refp 0 0 0
+vang 30 30
+size 11
+rend out.sunimg
+"""
+
+
+def centre(image):
+    image = np.asarray(image)
+    return image[image.shape[0] // 2, image.shape[1] // 2]
+
+
+def test_opaque_sphere_lit_from_the_eye():
+    """N = V = L at the centre: I = ke·d·L + (1−ke)·d·L + ks·L (cos γ = 1)."""
+    deck = "sphe 0 0 0 10\nopaq 0.5 0.25 1 0.2 7\nplig 0 -1 0 200 100 50\nelig 0.3\nback 1 2 3\n" + CAMERA
+    img = rtjax.render(scene_from_text(deck))
+    d, ks, ke, light = np.array([0.5, 0.25, 1]), 0.2, 0.3, np.array([200, 100, 50])
+    expect = ke * d * light + (1 - ke) * d * light + ks * light
+    np.testing.assert_allclose(centre(img), np.minimum(expect, 255), rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(img)[0, 0], [1, 2, 3])  # corner: background
+
+
+def test_diffuse_falls_with_cosine():
+    """A light at 60° from the normal at the centre pixel: diffuse ∝ cos 60° = ½, no highlight seen."""
+    deck = "sphe 0 0 0 10\nopaq 1 1 1 0 1\nplig 0 -1 1.7320508075688772 200 200 200\nelig 0\n" + CAMERA
+    c = centre(rtjax.render(scene_from_text(deck).astype(jnp.float64)))
+    np.testing.assert_allclose(c, 100.0, rtol=1e-7)  # the deck is read as float32
+
+
+def test_shadowed_point_gets_ambient_only():
+    deck = (
+        "sphe 0 0 0 10\nopaq 1 0.5 0.25 0.9 5\n"
+        "sphe 0 -30 0 5\nopaq 0 0 0 0 1\n"  # between light and the big sphere's front
+        "plig 0 -1 0 200 200 200\nelig 0.25\n"
+        "eyep 100 -100 0\nrefp 0 0 0\nvang 30 30\nsize 11\nrend x.ras\n"
+    )
+    s = scene_from_text(deck)
+    # the point (0, -10, 0) faces the light but sits in the small sphere's shadow
+    lit = rtjax.render(s.replace(centers=np.array([[0, 0, 0], [0, -30, 40.0]])))
+    shadowed = rtjax.render(s)
+    ref = reference.render_reference(reference.parse_deck_text(deck)[0], depth=0)
+    np.testing.assert_allclose(np.asarray(shadowed), ref, atol=0.05)
+    assert not np.allclose(np.asarray(lit), np.asarray(shadowed))
+
+
+def test_mirror_shows_what_it_reflects():
+    """The centre ray meets a mirror head-on and comes back along −y, past the eye, onto
+    the +y face of an opaque sphere behind the eye. That face looks at the light (+y),
+    but the mirror itself shadows it: ambient only, ke·d·L."""
+    deck = (
+        "sphe 0 0 0 10\nmirr\nsphe 0 -300 0 50\nopaq 0.2 0.4 0.6 0 1\n"
+        "plig 0 1 0 100 100 100\nelig 0.5\nback 0 0 0\n" + CAMERA
+    )
+    s = scene_from_text(deck)
+    np.testing.assert_allclose(centre(rtjax.render(s, depth=1)), 0.5 * np.array([0.2, 0.4, 0.6]) * 100, rtol=1e-5)
+    assert np.all(centre(rtjax.render(s, depth=0)) == 0)  # the reflected ray is past the depth: black
+    ref = reference.render_reference(reference.parse_deck_text(deck)[0], depth=3)
+    np.testing.assert_allclose(np.asarray(rtjax.render(s, depth=3)), ref, atol=0.05)
+
+
+def test_invisible_glass():
+    """kt = 1, n = 1: a glass sphere bends nothing and weighs kt² = 1; with ks = 0 it vanishes."""
+    behind = "sphe 0 60 0 30\nopaq 0.3 0.6 0.9 0.5 10\nplig 0 -1 1 255 255 255\nelig 0.2\nback 10 20 30\n"
+    with_glass = "sphe 0 0 0 10\ntrpa 1 1 0 1\n" + behind + CAMERA
+    a = rtjax.render(scene_from_text(with_glass).astype(jnp.float64), depth=2)
+    b = rtjax.render(scene_from_text(behind + CAMERA).astype(jnp.float64))
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-9)
+
+
+def test_glass_weighs_kt_per_interface():
+    deck = "sphe 0 0 0 10\ntrpa 0.5 1 0 1\nback 100 200 40\n" + CAMERA
+    s = scene_from_text(deck)
+    np.testing.assert_allclose(centre(rtjax.render(s, depth=2)), [25, 50, 10], rtol=1e-6)
+    np.testing.assert_allclose(centre(rtjax.render(s, depth=1)), [0, 0, 0])  # second interface past the depth
+
+
+def test_no_lights_means_black_spheres():
+    deck = "sphe 0 0 0 10\nopaq 1 1 1 1 1\nelig 1\nback 9 9 9\n" + CAMERA
+    img = np.asarray(rtjax.render(scene_from_text(deck)))
+    assert np.all(centre(img) == 0) and np.all(img[0, 0] == 9)
+
+
+def test_clamped_not_rounded():
+    deck = "sphe 0 0 0 10\nopaq 1 1 1 1 1\nplig 0 -1 0 255 255 255\nelig 0\n" + CAMERA
+    img = np.asarray(rtjax.render(scene_from_text(deck)))
+    assert img.max() == 255.0  # 255·1 + 255·1 clamps
+    deck2 = "sphe 0 0 0 10\nopaq 0.5 0.5 0.5 0 1\nplig 0 -1 0 1 1 1\nelig 0\n" + CAMERA
+    np.testing.assert_allclose(centre(rtjax.render(scene_from_text(deck2))), 0.5)  # not rounded to 0 or 1
+
+
+def test_depth_default_and_model_only_what_is_needed():
+    opaque = rtjax.parse_deck("sphe 0 0 0 1\nopaq 1 1 1 0 1\n" + CAMERA).frames[0].scene
+    mirror = rtjax.parse_deck("sphe 0 0 0 1\nmirr\n" + CAMERA).frames[0].scene
+    assert opaque.structure.default_depth == 0
+    assert mirror.structure.default_depth == rtjax.DEFAULT_DEPTH
+    # an opaque-only scene renders the same whatever depth is asked
+    np.testing.assert_array_equal(np.asarray(rtjax.render(opaque, depth=7)), np.asarray(rtjax.render(opaque)))
+
+
+def test_compiled_graph_follows_the_structure():
+    """No Snell's law without glass, no shadow rays without lights, no chain without mirrors."""
+    from rtjax.render import _render
+
+    def jaxpr_text(deck, **kw):
+        s = rtjax.parse_deck(deck + CAMERA).frames[0].scene
+        return str(jax.make_jaxpr(lambda p: _render(p, s.structure, rtjax.render.__wrapped__ if False else s.structure.default_depth, 1, 1 << 17))(s.params))
+
+    opaque = jaxpr_text("sphe 0 0 0 1\nopaq 1 1 1 0 1\n")
+    assert "cond" not in opaque and "sqrt" in opaque
+    lit = jaxpr_text("sphe 0 0 0 1\nopaq 1 1 1 0.5 2\nplig 1 1 1 9 9 9\n")
+    mirror = jaxpr_text("sphe 0 0 0 1\nmirr\nplig 1 1 1 9 9 9\n")
+    glass = jaxpr_text("sphe 0 0 0 1\ntrpa 0.9 1.5 0 1\nplig 1 1 1 9 9 9\n")
+    assert "cond" in mirror and "cond" in glass
+    # refraction adds η: a division by the index; shadow rays add a product over spheres
+    assert glass.count("div") > mirror.count("div")
+    assert lit.count("reduce_prod") > opaque.count("reduce_prod")
+
+
+@pytest.mark.parametrize("name", ["ex2s3.dat", "level1_opaque.dat", "level2_mirrors.dat", "level3_glass.dat"])
+def test_matches_reference_on_scene_decks(name):
+    """Quantised pixels within 2 levels of the float64 reference on ≥ 99.5 % of pixels."""
+    path = os.path.join(SCENES, name)
+    with open(path) as f:
+        text = f.read()
+    frame = reference.parse_deck_text(text)[0]
+    scale = 0.5 if name != "ex2s3.dat" else 1.0
+    frame.size = int(frame.size * scale)
+    ref = reference.quantize(reference.render_reference(frame, depth=10))
+    scene = rtjax.load_deck(path).frames[0].scene.resized(frame.size)
+    ours = rtjax.images.to_uint8(rtjax.render(scene, depth=10))
+    assert ours.shape == ref.shape
+    off = np.abs(ours.astype(int) - ref.astype(int)).max(axis=-1)
+    assert np.mean(off <= 2) >= 0.995, f"{np.mean(off <= 2):.4f} within 2 levels"
+    assert np.mean(off == 0) >= 0.95
+
+
+def test_float32_matches_float64():
+    with open(os.path.join(SCENES, "ex2s3.dat")) as f:
+        scene = rtjax.parse_deck(f.read()).frames[0].scene.resized(100)
+    a = np.asarray(rtjax.render(scene))
+    b = np.asarray(rtjax.render(scene, dtype="float64"))
+    assert a.dtype == np.float32 and b.dtype == np.float64
+    off = np.abs(a - b).max(axis=-1)
+    assert np.mean(off < 0.5) > 0.995 and np.median(off) < 1e-3
+
+
+def test_supersampling_matches_reference():
+    deck = "sphe 0 0 0 30\nopaq 1 0.5 0 0.3 10\nplig 1 -1 1 255 255 255\nelig 0.2\nback 0 0 100\n" + CAMERA.replace("size 11", "size 13")
+    ours = np.asarray(rtjax.render(scene_from_text(deck).astype(jnp.float64), spp=3))
+    ref = reference.render_reference(reference.parse_deck_text(deck)[0], spp=3)
+    np.testing.assert_allclose(ours, ref, atol=1e-6)
+
+
+def test_tiles_do_not_change_the_image():
+    with open(os.path.join(SCENES, "ex2s3.dat")) as f:
+        scene = rtjax.parse_deck(f.read()).frames[0].scene.resized(60).astype(jnp.float64)
+    whole = np.asarray(rtjax.render(scene))
+    tiled = np.asarray(rtjax.render(scene, tile=500))  # 8 tiles, the last one padded
+    np.testing.assert_allclose(whole, tiled, atol=1e-9)
+
+
+def test_bad_render_options():
+    s = scene_from_text("sphe 0 0 0 1\nopaq 1 1 1 0 1\n" + CAMERA)
+    for kw in (dict(spp=0), dict(depth=-1), dict(dtype="int32"), dict(tile=0)):
+        with pytest.raises(rtjax.RtjaxError):
+            rtjax.render(s, **kw)
