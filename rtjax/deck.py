@@ -20,7 +20,17 @@ from .camera import image_height
 from .errors import DeckError, RtjaxError
 from .scene import GLASS, MIRROR, OPAQUE, TEXTURE, Params, Scene, Structure
 
-_NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?")
+# Ordinary float syntax, ASCII digits only (`\d` alone would accept any Unicode digit).
+_NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?", re.ASCII)
+_NONFINITE = re.compile(r"[+-]?(?:nan|inf|infinity)", re.IGNORECASE)
+# Line breaks as editors and Python's text mode count them; any other character that
+# str.splitlines() would break at (form feed, U+2028, ...) is blank space inside a line.
+_LINE_BREAK = re.compile(r"\r\n|\r|\n")
+_LINE_BREAK_BYTES = re.compile(rb"\r\n|\r|\n")
+#: Scenes are float32: a number is rounded to float32 as it is read, and must stay finite.
+_F32_MAX = float(np.finfo(np.float32).max)
+#: The largest image side a deck may ask for (32-bit indices, the Sun raster header).
+MAX_SIDE = 2**31 - 1
 
 #: command → (argument names for messages); `tmap` and `rend` take a file name.
 COMMANDS: dict[str, tuple[str, ...]] = {
@@ -74,6 +84,17 @@ class _Sphere:
     texture: str = ""
 
 
+def _show(text: str) -> str:
+    """A token as it reads in a one-line message: as is if printable, else escaped."""
+    return text if text.isprintable() else repr(text)[1:-1]
+
+
+def _to_f32(value: float) -> float:
+    """`value` rounded to float32 (inf when out of range), back as a Python float."""
+    with np.errstate(over="ignore"):
+        return float(np.float32(value))
+
+
 class _Parser:
     def __init__(self, name: str, folder: str, load_texture: Callable[[str], np.ndarray] | None):
         self.name = name
@@ -92,31 +113,51 @@ class _Parser:
         self.frames: list[Frame] = []
         self.line = 0
         self.cmd = ""
+        self.texts: dict[str, str] = {}  # argument name → text, for messages
 
     # -- errors and argument checking -------------------------------------------------
     def error(self, message: str, line: int | None = None) -> DeckError:
         return DeckError(self.name, self.line if line is None else line, message)
 
-    def numbers(self, args: list[str], names: Sequence[str]) -> list[float]:
+    def numbers(self, args: list[str], names: Sequence[str], f32: bool = True) -> list[float]:
         if len(args) != len(names):
+            if not names:
+                raise self.error(f"{self.cmd} takes no arguments, found {len(args)}: {' '.join(map(_show, args))}")
             plural = "number" if len(names) == 1 else "numbers"
             raise self.error(
                 f"{self.cmd} takes {len(names)} {plural} ({' '.join(names)}), found {len(args)}"
-                + (f": {' '.join(args)}" if args else "")
+                + (f": {' '.join(map(_show, args))}" if args else "")
             )
-        return [self.number(a, n) for a, n in zip(args, names)]
+        return [self.number(a, n, f32) for a, n in zip(args, names)]
 
-    def number(self, text: str, name: str) -> float:
+    def number(self, text: str, name: str, f32: bool = True) -> float:
+        """A number as the scene stores it: rounded to float32, finite (`f32`), or as written."""
+        self.texts[name] = text
+        if _NONFINITE.fullmatch(text):
+            raise self.error(f"{self.cmd}: {name} must be a finite number, found {_show(text)}")
         if not _NUMBER.fullmatch(text):
-            raise self.error(f"{self.cmd}: {name} must be a number, found {text!r}")
+            raise self.error(f"{self.cmd}: {name} must be a number, found {_show(text)}")
         value = float(text)
-        if not math.isfinite(value):
-            raise self.error(f"{self.cmd}: {name} must be a finite number, found {text!r}")
-        return value
+        if not f32:
+            if not math.isfinite(value):
+                raise self.error(f"{self.cmd}: {name} must be a finite number, found {_show(text)}")
+            return value
+        if not math.isfinite(_to_f32(value)):
+            raise self.error(
+                f"{self.cmd}: {name} must be a finite number within float32 range (|x| ≤ {_F32_MAX:.7g}), found {_show(text)}"
+            )
+        return _to_f32(value)
+
+    def found(self, name: str, value: float) -> str:
+        """How a value was written, and what it became when that differs (float32 rounding)."""
+        text = self.texts.get(name)
+        if text is None:
+            return f"{value:g}"
+        return _show(text) if float(text) == value else f"{_show(text)} (= {value:g} in float32)"
 
     def check(self, ok: bool, name: str, value: float, expected: str) -> None:
         if not ok:
-            raise self.error(f"{self.cmd}: {name} must be {expected}, found {value:g}")
+            raise self.error(f"{self.cmd}: {name} must be {expected}, found {self.found(name, value)}")
 
     def unit(self, values, names):
         for v, n in zip(values, names):
@@ -127,7 +168,8 @@ class _Parser:
             self.check(0 <= v <= 255, n, v, "in [0, 255]")
 
     # -- commands ---------------------------------------------------------------------
-    def material_target(self) -> _Sphere:
+    def pending_sphere(self) -> _Sphere:
+        """The sphere a material line applies to (the last one, still without a material)."""
         if not self.spheres:
             raise self.error(f"{self.cmd} has no sphere above it (a material line follows a sphe line)")
         s = self.spheres[-1]
@@ -135,6 +177,10 @@ class _Parser:
             raise self.error(
                 f"{self.cmd}: the sphere on line {s.line} already has a material ({s.kind} on line {s.material_line})"
             )
+        return s
+
+    def material_target(self) -> _Sphere:
+        s = self.pending_sphere()
         s.kind, s.material_line = self.cmd, self.line
         return s
 
@@ -172,26 +218,35 @@ class _Parser:
 
     def do_tmap(self, a):
         if len(a) not in (1, 3):
-            raise self.error(f"tmap takes a file name and optionally 2 numbers (file [ks beta]), found {len(a)} arguments")
+            raise self.error(
+                f"tmap takes a file name and optionally 2 numbers (file [ks beta]), found {len(a)} arguments"
+                + (f": {' '.join(map(_show, a))}" if a else "")
+            )
         ks, beta = self.numbers(a[1:], ("ks", "beta")) if len(a) == 3 else (0.0, 1.0)
         self.unit((ks,), ("ks",))
         self.check(beta >= 1, "beta", beta, "≥ 1")
+        self.pending_sphere()  # a material line in the wrong place is reported before its file
         name = a[0]
         if name not in self.textures:
             path = os.path.join(self.folder, name)
             if self.load_texture is None:
-                raise self.error("tmap: textures cannot be loaded here")
+                raise self.error(f"tmap: textures cannot be loaded here (texture {name!r})")
             try:
-                self.textures[name] = self.load_texture(path)
-            except (RtjaxError, OSError) as e:
-                raise self.error(f"tmap: cannot read texture {name!r}: {e}") from None
+                texture = np.asarray(self.load_texture(path))
+            except (RtjaxError, OSError, ValueError, MemoryError) as e:
+                reason = " ".join(str(e).split()) or type(e).__name__
+                raise self.error(f"tmap: cannot read texture {name!r}: {reason}") from None
+            if texture.ndim != 3 or texture.shape[2] != 3 or texture.shape[0] < 1 or texture.shape[1] < 1:
+                raise self.error(f"tmap: texture {name!r} has shape {texture.shape}, expected (height, width, 3)")
+            self.textures[name] = texture
         s = self.material_target()
         s.ks, s.beta, s.texture = ks, beta, name
 
     def do_plig(self, a):
         v = self.numbers(a, COMMANDS["plig"])
         if v[0] == v[1] == v[2] == 0:
-            raise self.error("plig: the light vector (lx ly lz) must not be zero, found 0 0 0")
+            found = " ".join(self.found(n, x) for n, x in zip(COMMANDS["plig"][:3], v[:3]))
+            raise self.error(f"plig: the light vector (lx ly lz) must not be zero, found {found}")
         self.level(v[3:], COMMANDS["plig"][3:])
         self.lights.append((tuple(v[:3]), tuple(v[3:])))
 
@@ -220,20 +275,31 @@ class _Parser:
         self.vang = tuple(v)
 
     def do_size(self, a):
-        (n,) = self.numbers(a, COMMANDS["size"])
-        self.check(n >= 1 and n == int(n), "is", n, "an integer ≥ 1")
+        (n,) = self.numbers(a, COMMANDS["size"], f32=False)  # a count, not a float32 parameter
+        self.check(n >= 1 and n == int(n) and n <= MAX_SIDE, "is", n, f"an integer in [1, {MAX_SIDE}]")
         self.size = int(n)
 
     def do_rend(self, a):
         if len(a) != 1:
-            raise self.error(f"rend takes 1 file name, found {len(a)} arguments")
+            raise self.error(
+                f"rend takes 1 file name, found {len(a)} arguments" + (f": {' '.join(map(_show, a))}" if a else "")
+            )
         self.require_material(f"the rend on line {self.line}")
         missing = [c for c, v in (("eyep", self.eye), ("refp", self.refp), ("vang", self.vang), ("size", self.size)) if v is None]
         if missing:
             raise self.error(f"rend: the camera is incomplete: {', '.join(missing)} must come before rend")
-        if self.eye == self.refp:
+        if self.eye == self.refp:  # compared as stored (float32), where the view direction is computed
             raise self.error(
                 f"rend: eyep (line {self.set_at['eyep']}) equals refp (line {self.set_at['refp']}): the view has no direction"
+            )
+        ha, va = self.vang
+        try:
+            height = image_height(self.size, ha, va)
+        except OverflowError:
+            height = MAX_SIDE + 1
+        if height > MAX_SIDE:
+            raise self.error(
+                f"rend: size {self.size} with vang {ha:g} {va:g} makes the image taller than {MAX_SIDE} pixels"
             )
         self.frames.append(Frame(self.snapshot(), a[0], self.line))
 
@@ -278,14 +344,15 @@ class _Parser:
 
     # -- the loop -----------------------------------------------------------------------
     def parse(self, text: str) -> tuple[Frame, ...]:
-        for self.line, raw in enumerate(text.splitlines(), start=1):
+        for self.line, raw in enumerate(_LINE_BREAK.split(text), start=1):
             tokens = raw.split("#", 1)[0].split()
             if not tokens:
                 continue
             self.cmd, args = tokens[0], tokens[1:]
+            self.texts = {}
             if self.cmd == "quit":
                 if args:
-                    raise self.error(f"quit takes no arguments, found {len(args)}")
+                    raise self.error(f"quit takes no arguments, found {len(args)}: {' '.join(map(_show, args))}")
                 break
             handler = getattr(self, "do_" + self.cmd, None) if self.cmd in COMMANDS else None
             if handler is None:
@@ -315,12 +382,12 @@ def load_deck(path: str | os.PathLike) -> Deck:
     try:
         with open(path, "rb") as f:
             data = f.read()
-    except OSError as e:
-        raise DeckError(name, None, f"cannot read the deck: {e.strerror or e}") from None
+    except (OSError, ValueError) as e:
+        raise DeckError(name, None, f"cannot read the deck: {getattr(e, 'strerror', None) or e}") from None
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as e:
-        line = data[: e.start].count(b"\n") + 1
+        line = len(_LINE_BREAK_BYTES.findall(data, 0, e.start)) + 1
         raise DeckError(name, line, f"the deck is not UTF-8 text (byte 0x{data[e.start]:02x})") from None
     return parse_deck(text, name, os.path.dirname(os.path.abspath(path)), load_image)
 
@@ -329,8 +396,17 @@ def load_deck(path: str | os.PathLike) -> Deck:
 def _fmt(x) -> str:
     """The shortest text that reads back to the same float32/float64 value."""
     x = np.asarray(x)[()]  # a NumPy scalar keeps its precision (0-d arrays print as float64)
-    s = np.format_float_positional(x, unique=True, trim="-") if abs(float(x)) < 1e16 else np.format_float_scientific(x, unique=True, trim="-")
-    return "0" if s in ("-0", "+0") else s
+    if not np.isfinite(x):
+        raise RtjaxError(f"cannot write {x} into a deck: numbers in a deck are finite")
+    # "-0" stays "-0": parse → write → parse keeps every parameter bit for bit.
+    return np.format_float_positional(x, unique=True, trim="-") if abs(float(x)) < 1e16 else np.format_float_scientific(x, unique=True, trim="-")
+
+
+def _name(name: str, what: str) -> str:
+    """A file name as one deck token: not empty, no blanks, no `#`, nothing unprintable."""
+    if not isinstance(name, str) or not name or name.split() != [name] or "#" in name or not name.isprintable():
+        raise RtjaxError(f"cannot write the {what} name {name!r} into a deck: it must be one printable word without '#'")
+    return name
 
 
 def _line(cmd: str, *values) -> str:
@@ -349,7 +425,7 @@ def _scene_parts(scene: Scene) -> tuple[list[str], list[str], list[str]]:
         elif kind == GLASS:
             material = _line("trpa", p.kt[i], p.ior[i], p.ks[i], p.beta[i])
         else:
-            material = _line("tmap", s.texture_files[t], p.ks[i], p.beta[i])
+            material = _line("tmap", _name(s.texture_files[t], "tmap texture"), p.ks[i], p.beta[i])
             t += 1
         spheres.append(_line("sphe", *p.centers[i], p.radii[i]) + "\n" + material)
     lights = [_line("plig", *d, *c) for d, c in zip(p.light_dirs, p.light_colors)]
@@ -371,7 +447,7 @@ def format_deck(frames: Sequence[Frame] | Scene, output: str | None = None, head
     frames' spheres and lights unchanged (it may add more); state lines are restated.
     """
     if isinstance(frames, Scene):
-        frames = [Frame(frames, output or "out.sunimg", 0)]
+        frames = [Frame(frames, "out.sunimg" if output is None else output, 0)]
     out = [f"# {h}" if h else "#" for h in (header or "").splitlines()]
     done_spheres: list[str] = []
     done_lights: list[str] = []
@@ -379,7 +455,7 @@ def format_deck(frames: Sequence[Frame] | Scene, output: str | None = None, head
         spheres, lights, state = _scene_parts(fr.scene)
         if spheres[: len(done_spheres)] != done_spheres or lights[: len(done_lights)] != done_lights:
             raise RtjaxError("a later frame must keep the earlier frames' spheres and lights: decks cannot remove or change them")
-        out += spheres[len(done_spheres) :] + lights[len(done_lights) :] + state + [_line("rend", fr.output)]
+        out += spheres[len(done_spheres) :] + lights[len(done_lights) :] + state + [_line("rend", _name(fr.output, "rend output"))]
         done_spheres, done_lights = spheres, lights
     out.append("quit")
     return "\n".join(out) + "\n"

@@ -111,8 +111,8 @@ def _load(path: str | os.PathLike, assignment_order: bool) -> np.ndarray:
     try:
         with open(name, "rb") as f:
             head = f.read(4)
-    except OSError as e:
-        raise ImageError(f"{name}: cannot read: {e.strerror or e}") from e
+    except (OSError, ValueError) as e:  # ValueError: a name with a NUL byte
+        raise ImageError(f"{name}: cannot read: {getattr(e, 'strerror', None) or e}") from e
     if is_sunraster_path(name) or head == SUN_MAGIC.to_bytes(4, "big"):
         return read_sunraster(name, assignment_order=assignment_order)
     import OpenImageIO as oiio

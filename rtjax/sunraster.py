@@ -191,8 +191,8 @@ def read_sunraster(path: str | os.PathLike, *, assignment_order: bool = False) -
     try:
         with open(name, "rb") as f:
             data = f.read()
-    except OSError as e:
-        raise ImageError(f"{name}: cannot read: {e.strerror or e}") from e
+    except (OSError, ValueError) as e:  # ValueError: a name with a NUL byte
+        raise ImageError(f"{name}: cannot read: {getattr(e, 'strerror', None) or e}") from e
     return decode_sunraster(data, assignment_order=assignment_order, source=name)
 
 
