@@ -19,7 +19,7 @@ from . import spheres
 from .numerics import dot, normalize, safe_sqrt
 from .scene import GLASS, MIRROR, OPAQUE, TEXTURE, Params, Structure
 from .shading import local_light, phong_angles
-from .textures import texture_colour
+from .textures import textured_diffuse
 
 
 class Material(NamedTuple):
@@ -50,9 +50,7 @@ def surface_colour(s: Structure, p: Params, m: Material, idx, normal_out) -> Flo
     """The diffuse colour d at each hit: the sphere's own, or its texture's texel."""
     d = m.diffuse.T[:, idx]
     if s.has(TEXTURE):
-        tex_of = jnp.asarray(s.texture_index())[idx]
-        for k, texels in enumerate(p.textures):
-            d = jnp.where(tex_of == k, texture_colour(texels, normal_out), d)
+        d = textured_diffuse(p.textures, jnp.asarray(s.texture_index())[idx], normal_out, d)
     return d
 
 

@@ -7,10 +7,12 @@ otherwise a literal transcription of the spec.
 
 API
 ---
-``parse_deck_text(text) -> list[Frame]``
+``parse_deck_text(text, folder=".") -> list[Frame]``
     A tiny deck reader (DECK.md section 1). One ``Frame`` per ``rend`` line, a snapshot of the
     state at that line. It does not validate much and its errors are plain
-    ``ValueError``s: the real parser is tested elsewhere.
+    ``ValueError``s: the real parser is tested elsewhere. ``tmap`` files are read
+    (with Pillow, not rtjax's codec) relative to ``folder`` when a frame is rendered;
+    a sphere dict may instead carry its texels directly under ``"texels"``.
 ``image_size(frame) -> (W, H)``
     DECK.md section 2: W = size, H = floor(size * tan(va/2) / tan(ha/2) + 0.5), at least 1.
 ``camera_basis(frame) -> (w, u, v)``
@@ -20,6 +22,10 @@ API
     spp x spp grid per pixel; NOT rounded (see ``quantize``).
 ``quantize(img) -> np.ndarray``
     The file's pixel values: floor(x + 0.5) of the clamped image, as uint8.
+``load_texture(path) -> np.ndarray``
+    (h, w, 3) float64 texels 0..255, read with Pillow (Sun raster, PNG, ...).
+``sample_texture(texels, p) -> np.ndarray``
+    DECK.md section 4: the diffuse colour (M, 3) in 0..1 at outward normals p (M, 3).
 ``refract(d, n, eta) -> (t, tir)``
     Snell refraction of unit directions d at unit normals n facing the incoming ray,
     with relative index eta = n1/n2; where there is total internal reflection t is the
@@ -44,11 +50,17 @@ Interpretations of the spec (where it is silent)
 * Entering a transparent sphere (d . outward < 0) the relative index is 1/n, leaving it
   n; overlapping spheres are not nested media (each interface is air <-> that sphere).
 * The ambient term ke*d*L_lambda is summed over lights, independent of N.L and S.
+* Textures (section 4): u = atan2(p_y, p_x)/(2 pi) + 1/2, v = arccos(p_z)/pi with p the
+  normalised (P - C); bilinear on texel centres ((x + 1/2)/w, (y + 1/2)/h): the
+  coordinate x = u*w - 1/2 taken modulo w (columns wrap), y = v*h - 1/2 clamped to
+  [0, h - 1] (rows clamp). At an exact pole NumPy's arctan2(0, 0) = 0 gives u = 1/2.
+  A textured sphere is opaque for shadows and spawns no ray.
 """
 
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -61,6 +73,8 @@ __all__ = [
     "render_reference",
     "quantize",
     "refract",
+    "load_texture",
+    "sample_texture",
 ]
 
 REL_EPS = 1e-9  # relative self-intersection tolerance for "other" spheres
@@ -91,8 +105,10 @@ def _copy_sphere(s):
     return {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in s.items()}
 
 
-def parse_deck_text(text: str) -> list[Frame]:
-    """Read a deck; return one Frame per ``rend`` line (section 1 semantics)."""
+def parse_deck_text(text: str, folder: str = ".") -> list[Frame]:
+    """Read a deck; return one Frame per ``rend`` line (section 1 semantics).
+
+    ``tmap`` file names are resolved against ``folder`` (stored as the sphere's "path")."""
     spheres: list[dict] = []
     lights: list[tuple] = []
     back = np.zeros(3)
@@ -130,11 +146,11 @@ def parse_deck_text(text: str) -> list[Frame]:
             elif cmd == "trpa":
                 kt, n, ks, beta = nums(args, 4, cmd)
                 s.update(kind="trpa", kt=kt, n=n, ks=ks, beta=beta)
-            else:  # tmap file [ks beta]: kept for completeness, not rendered here
+            else:  # tmap file [ks beta]
                 if len(args) not in (1, 3):
                     raise ValueError("tmap takes a file name and optionally ks beta")
                 ks, beta = (float(args[1]), float(args[2])) if len(args) == 3 else (0.0, 1.0)
-                s.update(kind="tmap", file=args[0], ks=ks, beta=beta)
+                s.update(kind="tmap", file=args[0], path=os.path.join(folder, args[0]), ks=ks, beta=beta)
         elif cmd == "plig":
             v = nums(args, 6, cmd)
             lights.append((np.array(v[:3]), np.array(v[3:])))
@@ -251,6 +267,52 @@ def _intersect_all(o, d, src, centers, radii, tmin):
     return np.where(hit, t, np.inf)
 
 
+# --------------------------------------------------------------------------------------
+# Textures (section 4)
+# --------------------------------------------------------------------------------------
+
+
+def load_texture(path: str) -> np.ndarray:
+    """(h, w, 3) float64 texels in 0..255, read with Pillow (independent of rtjax)."""
+    from PIL import Image
+
+    with Image.open(path) as im:
+        return np.asarray(im.convert("RGB"), dtype=np.float64)
+
+
+def sample_texture(texels, p):
+    """Diffuse colour (M, 3) in 0..1 at outward normals p (M, 3) (normalised here)."""
+    texels = np.asarray(texels, float)
+    h, w = texels.shape[:2]
+    p = _normalize(np.asarray(p, float))
+    u = np.arctan2(p[:, 1], p[:, 0]) / (2 * np.pi) + 0.5
+    v = np.arccos(np.clip(p[:, 2], -1.0, 1.0)) / np.pi
+    xs = np.mod(u * w - 0.5, w)  # in [0, w): columns wrap
+    ys = np.clip(v * h - 0.5, 0.0, h - 1.0)  # rows clamp
+    c0 = np.minimum(np.floor(xs).astype(int), w - 1)
+    r0 = np.floor(ys).astype(int)
+    a = xs - c0
+    b = ys - r0
+    c1 = (c0 + 1) % w
+    r1 = np.minimum(r0 + 1, h - 1)
+    out = (
+        (1 - a)[:, None] * (1 - b)[:, None] * texels[r0, c0]
+        + a[:, None] * (1 - b)[:, None] * texels[r0, c1]
+        + (1 - a)[:, None] * b[:, None] * texels[r1, c0]
+        + a[:, None] * b[:, None] * texels[r1, c1]
+    )
+    return out / 255.0
+
+
+def _texels_of(sphere, cache):
+    if "texels" in sphere:
+        return np.asarray(sphere["texels"], float)
+    path = sphere["path"]
+    if path not in cache:
+        cache[path] = load_texture(path)
+    return cache[path]
+
+
 def refract(d, n, eta):
     """Refract unit directions d (M,3) at unit normals n (M,3) facing the incoming ray.
 
@@ -280,13 +342,13 @@ def _trace(frame: Frame, o, d, depth: int):
     if S == 0:
         color[:] = frame.back
         return color
-    if any(s["kind"] == "tmap" for s in sph):
-        raise NotImplementedError("the reference does not render textures (tmap)")
 
     centers = np.array([s["center"] for s in sph], float)
     radii = np.array([s["r"] for s in sph], float)
     kind = np.array([s["kind"] for s in sph])
-    is_opaq, is_mirr, is_trpa = kind == "opaq", kind == "mirr", kind == "trpa"
+    is_opaq, is_mirr, is_trpa, is_tmap = kind == "opaq", kind == "mirr", kind == "trpa", kind == "tmap"
+    cache: dict = {}
+    texels = {i: _texels_of(s, cache) for i, s in enumerate(sph) if s["kind"] == "tmap"}
     dif = np.array([s.get("d", np.zeros(3)) for s in sph], float)
     ks = np.array([s.get("ks", 0.0) for s in sph], float)
     beta = np.array([s.get("beta", 1.0) for s in sph], float)
@@ -332,6 +394,12 @@ def _trace(frame: Frame, o, d, depth: int):
         entering = np.einsum("mk,mk->m", dd, outward) < 0
         N = np.where(entering[:, None], outward, -outward)  # faces the incoming ray
         V = -dd
+        # diffuse colour per hit: the sphere's own, or its texture's at the hit
+        dif_hit = dif[k]
+        for i, tx in texels.items():
+            on = k == i
+            if np.any(on):
+                dif_hit[on] = sample_texture(tx, outward[on])
 
         # local (direct) lighting, for opaque and transparent hits
         local = np.zeros((hidx.size, 3))
@@ -345,9 +413,9 @@ def _trace(frame: Frame, o, d, depth: int):
             ts = _intersect_all(P, np.ascontiguousarray(Lm), k, centers, radii, tmin)
             blocked = np.isfinite(ts)
             Svis = np.prod(np.where(blocked, shadow_factor[None, :], 1.0), axis=1)
-            op = is_opaq[k]
-            diffuse = (1.0 - ke) * np.maximum(NL, 0.0)[:, None] * dif[k]
-            opaque_I = ke * dif[k] * Lc + Svis[:, None] * (diffuse * Lc + spec[:, None] * Lc)
+            op = is_opaq[k] | is_tmap[k]
+            diffuse = (1.0 - ke) * np.maximum(NL, 0.0)[:, None] * dif_hit
+            opaque_I = ke * dif_hit * Lc + Svis[:, None] * (diffuse * Lc + spec[:, None] * Lc)
             glass_I = Svis[:, None] * spec[:, None] * Lc
             local += np.where(op[:, None], opaque_I, np.where(is_trpa[k][:, None], glass_I, 0.0))
         color[hidx] += ww[:, None] * local
