@@ -8,9 +8,13 @@ both `rtjax` and `fitting`.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import signal
 import sys
+import threading
 import time
+from collections.abc import Iterator
 
 from .errors import DeckError, RtjaxError
 
@@ -86,8 +90,22 @@ def _plan(deck, args) -> list[tuple[object, str]]:
     return plan
 
 
+def _render_options(render, args) -> dict:
+    """Keyword options for `render`; --edges only where the renderer offers that mode."""
+    options = {"depth": args.depth, "spp": args.spp, "dtype": args.dtype}
+    if args.edges > 0:
+        import inspect
+
+        accepted = inspect.signature(render).parameters
+        name = next((n for n in ("edges", "edge_width") if n in accepted), None)
+        if name is None:
+            raise RtjaxError("--edges: this build's renderer has no silhouette-aware mode")
+        options[name] = args.edges
+    return options
+
+
 def cmd_render(args) -> int:
-    from .deck import load_deck
+    from .deck import _show, load_deck
 
     deck = load_deck(args.deck)
     if not deck.frames:
@@ -97,30 +115,52 @@ def cmd_render(args) -> int:
         import jax
 
         jax.config.update("jax_enable_x64", True)
-    from .images import save_image
+    from .images import save_image, to_uint8
     from .render import render
 
+    options = _render_options(render, args)
     for frame, path in plan:
-        start = time.perf_counter()
-        image = render(frame.scene, depth=args.depth, spp=args.spp, dtype=args.dtype)
-        image.block_until_ready()
-        elapsed = time.perf_counter() - start
-        folder = os.path.dirname(path)
-        if folder:
-            os.makedirs(folder, exist_ok=True)
-        save_image(path, image, assignment_order=args.assignment_order)
-        written = [path]
-        if args.png and not path.lower().endswith(".png"):
-            preview = os.path.splitext(path)[0] + ".png"
-            save_image(preview, image)
-            written.append(preview)
+        try:
+            start = time.perf_counter()
+            image = render(frame.scene, **options)
+            image.block_until_ready()
+            elapsed = time.perf_counter() - start
+            # Clamp, round and refuse non-finite values before anything touches the disk.
+            pixels = to_uint8(image)
+            folder = os.path.dirname(path)
+            if folder:
+                os.makedirs(folder, exist_ok=True)
+            save_image(path, pixels, assignment_order=args.assignment_order)
+            written = [path]
+            if args.png and not path.lower().endswith(".png"):
+                preview = os.path.splitext(path)[0] + ".png"
+                save_image(preview, pixels)
+                written.append(preview)
+        except RtjaxError as e:
+            raise DeckError(deck.path, frame.line, f"rend {_show(frame.output)}: {e}") from None
+        except OSError as e:
+            where = f"{e.filename}: " if e.filename else ""
+            raise DeckError(deck.path, frame.line, f"rend {_show(frame.output)}: {where}{e.strerror or e}") from None
+        except MemoryError:
+            raise DeckError(deck.path, frame.line, f"rend {_show(frame.output)}: out of memory") from None
         s = frame.scene.structure
         print(f"{' + '.join(written)}  {s.width}x{s.height}  {elapsed:.2f} s", flush=True)
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse whose errors are one line on stderr (no usage block), exit code 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: {_one_line(message)}\n")
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split("\n")).replace("\r", " ")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="rtjax", description="A differentiable JAX ray tracer for sphere scene decks.")
+    parser = _Parser(prog="rtjax", description="A differentiable JAX ray tracer for sphere scene decks.")
     sub = parser.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("render", help="render every `rend` of a deck", description="Render every `rend` line of DECK.")
@@ -140,17 +180,46 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Interrupted(KeyboardInterrupt):
+    """SIGTERM or SIGHUP, raised like Ctrl-C so that temporary files are cleaned up."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+@contextlib.contextmanager
+def _interrupt_on_termination() -> Iterator[None]:
+    """Turn SIGTERM/SIGHUP into an exception while rendering (their default kills the
+    process on the spot, leaving a temporary file behind mid-write)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise Interrupted(signum)
+
+    names = [n for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n)]
+    previous = {n: signal.signal(getattr(signal, n), handler) for n in names}
+    try:
+        yield
+    finally:
+        for n, old in previous.items():
+            signal.signal(getattr(signal, n), old)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    try:
-        return args.run(args)
-    except RtjaxError as e:
-        print(f"{e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("interrupted: no partial file was written", file=sys.stderr)
-        return 130
+    with _interrupt_on_termination():
+        try:
+            return args.run(args)
+        except RtjaxError as e:
+            print(_one_line(e), file=sys.stderr)
+            return 2
+        except KeyboardInterrupt as e:
+            print("interrupted: no partial file was written", file=sys.stderr)
+            return 128 + int(getattr(e, "signum", signal.SIGINT))
 
 
 if __name__ == "__main__":
