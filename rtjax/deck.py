@@ -403,9 +403,10 @@ def _fmt(x) -> str:
 
 
 def _name(name: str, what: str) -> str:
-    """A file name as one deck token: not empty, no blanks, no `#`, nothing unprintable."""
-    if not isinstance(name, str) or not name or name.split() != [name] or "#" in name or not name.isprintable():
-        raise RtjaxError(f"cannot write the {what} name {name!r} into a deck: it must be one printable word without '#'")
+    """A file name as one deck token (exactly what the parser reads as one): not empty,
+    no blank space or line break, no `#`."""
+    if not isinstance(name, str) or not name or name.split() != [name] or "#" in name:
+        raise RtjaxError(f"cannot write the {what} name {name!r} into a deck: it must be one word without blanks or '#'")
     return name
 
 
