@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from .numerics import dot, safe_sqrt
+from .numerics import dot, normalize, safe_sqrt
 
 #: Relative size of the hit-distance floor for spheres other than the ray's origin.
 TMIN_REL = {jnp.dtype(jnp.float32): 1e-4, jnp.dtype(jnp.float64): 1e-9}
@@ -88,30 +88,53 @@ def sphere_geometry(o, d, c, r):
 
 
 class Hit:
-    """The nearest hit of each ray: distance, sphere index, point, outward unit normal.
+    """The nearest hit of each ray: distance, sphere index, point, outward unit normal,
+    and whether the ray enters the sphere (it met the near root, from outside).
 
     The normal is (P − c)/r computed as (l ± √disc·d)/r, which stays accurate when the
     scene sits far from the origin (no large o + t·d − c cancellation).
+
+    The silhouette mode alters the first segment per ray: `exclude` (a sphere index or
+    −1) removes one sphere; `force` (an index or −1) makes the ray see that sphere: if
+    its nearest hit is anything else, it grazes that sphere at its silhouette point
+    c + r·l̂, where the ray passes closest to it (entering).
     """
 
     def __init__(self, o, d, centers, radii, origin, tmin, exclude=None, force=None):
         best, idx, far = nearest(o, d, centers, radii, origin, tmin, exclude)
-        self.found: Bool[Array, " p"] = jnp.isfinite(best)
-        self.index: Int[Array, " p"] = jnp.where(self.found, idx, -1)
+        found = jnp.isfinite(best)
+        if force is not None:
+            forced = (force >= 0) & (~found | (idx != force))
+            found, idx, far = found | forced, jnp.where(forced, force, idx), far & ~forced
+        self.found: Bool[Array, " p"] = found
+        self.index: Int[Array, " p"] = jnp.where(found, idx, -1)
+        self.entering: Bool[Array, " p"] = found & ~far
         sign = jnp.where(far, 1, -1).astype(o.dtype)
-        b, l, sq = sphere_geometry(o, d, centers.T[:, idx], radii[idx])
-        self.t = jnp.where(self.found, -b + sign * sq, 0)  # no inf in later arithmetic
-        self.normal_out = jnp.where(self.found, (l + sign * sq * d) / radii[idx], 0)
-        self.point = o + self.t * d
+        c, r = centers.T[:, idx], radii[idx]
+        b, l, sq = sphere_geometry(o, d, c, r)
+        t = -b + sign * sq
+        normal = (l + sign * sq * d) / r
+        point = o + t * d
+        if force is not None:
+            t = jnp.where(forced, -b, t)
+            normal = jnp.where(forced, normalize(l), normal)
+            point = jnp.where(forced, c + r * normal, point)
+        self.t = jnp.where(found, t, 0)  # no inf in later arithmetic
+        self.normal_out = jnp.where(found, normal, 0)
+        self.point = jnp.where(found, point, o)
 
 
-def transmission(o, d, centers, radii, origin, tmin, opacity_factor) -> Float[Array, " p"]:
+def transmission(o, d, centers, radii, origin, tmin, opacity_factor, skip=None) -> Float[Array, " p"]:
     """Shadow visibility along parallel-light rays: Π over spheres met of their factor.
 
     `opacity_factor[j]` is 0 for opaque, mirror and textured spheres and kt² for glass
     (shadow rays pass straight through glass, weighted kt² per sphere, DECK.md §3).
     A sphere counts if the ray meets it ahead of the origin (its far root is ahead).
+    `skip` (per ray, a sphere index or −1) leaves one sphere out (the silhouette mode
+    accounts for it smoothly).
     """
     _, blocked, _, _ = _roots(*jax.lax.stop_gradient((o, d, centers, radii)), origin, tmin)
+    if skip is not None:
+        blocked = blocked & (skip[None, :] != jnp.arange(centers.shape[0])[:, None])
     factor = jnp.where(blocked, opacity_factor[:, None], 1)
     return jnp.prod(factor, axis=0)

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from . import spheres
+from . import edges, spheres
 from .numerics import dot, normalize, safe_sqrt
 from .scene import GLASS, MIRROR, OPAQUE, TEXTURE, Params, Structure
 from .shading import local_light, phong_angles
@@ -54,8 +54,11 @@ def surface_colour(s: Structure, p: Params, m: Material, idx, normal_out) -> Flo
     return d
 
 
-def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v) -> Float[Array, "3 p"]:
-    """Local light at each hit: Σ over lights of ambient, diffuse and specular with shadows."""
+def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, soft=None) -> Float[Array, "3 p"]:
+    """Local light at each hit: Σ over lights of ambient, diffuse and specular with shadows.
+
+    `soft` = (∂P/∂x, ∂P/∂y, width): box-filter the nearest shadow edge (silhouette mode).
+    """
     total = jnp.zeros_like(n)
     if s.n_lights == 0:
         return total
@@ -63,8 +66,11 @@ def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v) -> F
     d = surface_colour(s, p, m, idx, hit.normal_out)
     ks, beta = m.ks[idx], m.beta[idx]
     for light, colour in zip(m.lights, p.light_colors):
-        ray = jnp.broadcast_to(light[:, None], n.shape)
-        vis = spheres.transmission(hit.point, ray, p.centers, p.radii, hit.index, m.tmin, m.shadow_factor)
+        if soft is None:
+            ray = jnp.broadcast_to(light[:, None], n.shape)
+            vis = spheres.transmission(hit.point, ray, p.centers, p.radii, hit.index, m.tmin, m.shadow_factor)
+        else:
+            vis = edges.soft_shadow(hit, light, p.centers, p.radii, m.tmin, m.shadow_factor, *soft)
         nl, cos_g = phong_angles(n, v, light)
         total = total + local_light(d, ks, beta, p.ke, nl, cos_g, vis, colour)
     return total
@@ -84,16 +90,20 @@ def next_direction(s: Structure, p: Params, idx, d, n, entering):
     return jnp.where(glass & (k > 0), refracted, reflected)
 
 
-def _segment(s: Structure, p: Params, m: Material, state, first_level: bool, toggles):
-    """One segment of the chain for every ray: hit, local light, the next ray."""
+def _segment(s: Structure, p: Params, m: Material, state, toggles=None, footprint=None):
+    """One segment of the chain for every ray: hit, local light, the next ray.
+
+    `toggles` and `footprint` apply to the first segment only (silhouette mode).
+    """
     o, d, origin, weight, colour = state
-    if first_level and toggles is not None:
-        hit = spheres.Hit(o, d, p.centers, p.radii, origin, m.tmin, *toggles)
-    else:
-        hit = spheres.Hit(o, d, p.centers, p.radii, origin, m.tmin)
-    entering = dot(hit.normal_out, d) < 0
+    toggles = toggles if toggles is not None else (None, None)
+    hit = spheres.Hit(o, d, p.centers, p.radii, origin, m.tmin, *toggles)
+    entering = hit.entering
     n = jnp.where(entering, hit.normal_out, -hit.normal_out)
-    local = shade_hit(s, p, m, hit, n, -d)
+    soft = None
+    if footprint is not None:
+        soft = (*edges.hit_footprint(hit, d, footprint), footprint.width)
+    local = shade_hit(s, p, m, hit, n, -d, soft)
     colour = colour + weight * jnp.where(hit.found, local, p.background[:, None])
     if not s.needs_secondary_rays:
         return o, d, origin, jnp.zeros_like(weight), colour
@@ -112,6 +122,7 @@ def trace(
     d: Float[Array, "3 p"],
     depth: int,
     toggles: tuple[Int[Array, " p"], Int[Array, " p"]] | None = None,
+    footprint: "edges.Footprint | None" = None,
 ) -> Float[Array, "3 p"]:
     """Colour seen along each ray (unclamped), following the chain for `depth` more segments.
 
@@ -119,7 +130,8 @@ def trace(
     `lax.cond`, which skips the work at run time and differentiates in both modes):
     on most tiles of most scenes the chain ends after one or two segments.
     `toggles` = (exclude, force), per ray a sphere index or −1, alter the first
-    segment for the silhouette mode (see `spheres.Hit`).
+    segment for the silhouette mode (see `spheres.Hit`); `footprint` (the primary
+    rays' change per pixel) softens the first segment's shadow edges (`edges`).
     """
     m = prepare(s, p)
     state = (
@@ -129,18 +141,18 @@ def trace(
         jnp.ones(o.shape[1:], o.dtype),
         jnp.zeros_like(o),
     )
-    state = _segment(s, p, m, state, True, toggles)
+    state = _segment(s, p, m, state, toggles, footprint)
     for _ in range(depth if s.needs_secondary_rays else 0):
         state = jax.lax.cond(
             jnp.any(state[3] > 0),
-            lambda st: _segment(s, p, m, st, False, None),
+            lambda st: _segment(s, p, m, st),
             lambda st: st,
             state,
         )
     return state[4]
 
 
-def trace_tiled(s: Structure, p: Params, o, d, depth: int, tile: int, toggles=None) -> Float[Array, "3 p"]:
+def trace_tiled(s: Structure, p: Params, o, d, depth: int, tile: int, toggles=None, footprint=None) -> Float[Array, "3 p"]:
     """`trace` over tiles of `tile` rays, one after another (`lax.map`).
 
     Tiles keep each segment's arrays small (cache-resident on a CPU) and let a tile
@@ -149,7 +161,7 @@ def trace_tiled(s: Structure, p: Params, o, d, depth: int, tile: int, toggles=No
     """
     n = o.shape[1]
     if n <= tile:
-        return trace(s, p, o, d, depth, toggles)
+        return trace(s, p, o, d, depth, toggles, footprint)
     count = -(-n // tile)
     pad = count * tile - n
 
@@ -157,6 +169,16 @@ def trace_tiled(s: Structure, p: Params, o, d, depth: int, tile: int, toggles=No
         a = jnp.concatenate([a, jnp.repeat(a[..., -1:], pad, axis=-1)], axis=-1) if pad else a
         return jnp.moveaxis(a.reshape(a.shape[:-1] + (count, tile)), -2, 0)
 
-    args = (split(o), split(d), None if toggles is None else tuple(split(t) for t in toggles))
-    out = jax.lax.map(lambda a: trace(s, p, a[0], a[1], depth, a[2]), args)
+    args = (
+        split(o),
+        split(d),
+        None if toggles is None else tuple(split(t) for t in toggles),
+        None if footprint is None else (split(footprint.dx), split(footprint.dy)),
+    )
+
+    def one(a):
+        fp = None if a[3] is None else edges.Footprint(a[3][0], a[3][1], footprint.width)
+        return trace(s, p, a[0], a[1], depth, a[2], fp)
+
+    out = jax.lax.map(one, args)
     return jnp.moveaxis(out, 0, -2).reshape(3, count * tile)[:, :n]
