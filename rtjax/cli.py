@@ -143,6 +143,11 @@ def cmd_render(args) -> int:
             raise DeckError(deck.path, frame.line, f"rend {_show(frame.output)}: {where}{e.strerror or e}") from None
         except MemoryError:
             raise DeckError(deck.path, frame.line, f"rend {_show(frame.output)}: out of memory") from None
+        except RuntimeError as e:  # XLA's allocator: RESOURCE_EXHAUSTED
+            if "RESOURCE_EXHAUSTED" not in str(e):
+                raise
+            detail = _one_line(e)[:200]
+            raise DeckError(deck.path, frame.line, f"rend {_show(frame.output)}: out of memory ({detail})") from None
         s = frame.scene.structure
         print(f"{' + '.join(written)}  {s.width}x{s.height}  {elapsed:.2f} s", flush=True)
     return 0
@@ -205,7 +210,7 @@ def _interrupt_on_termination() -> Iterator[None]:
         yield
     finally:
         for n, old in previous.items():
-            signal.signal(getattr(signal, n), old)
+            signal.signal(getattr(signal, n), signal.SIG_DFL if old is None else old)
 
 
 def main(argv: list[str] | None = None) -> int:

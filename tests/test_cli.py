@@ -282,3 +282,37 @@ def test_allow_large_without_rendering_a_huge_image(tmp_path, capsys, monkeypatc
     assert seen == [(16385, height)]
     assert stdout.startswith(f"{tmp_path / 'out' / 'a.ras'}  16385x{height}  ")
     assert cli.MAX_SIDE == 16384
+
+
+def test_out_of_memory_is_one_line(tmp_path, capsys, monkeypatch):
+    def oom(scene, **kw):
+        raise RuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 123456789 bytes.\nmore detail")
+
+    monkeypatch.setattr(sys.modules["rtjax.render"], "render", oom)
+    deck = write_deck(tmp_path, SMALL + "rend a.ras\n")
+    code, stdout, err = render_main(capsys, deck, "-o", tmp_path / "out")
+    assert code == 2 and stdout == ""
+    assert "out of memory (RESOURCE_EXHAUSTED" in one_error_line(err, "d.dat:12: rend a.ras: ")
+    assert not (tmp_path / "out").exists()
+
+
+def test_edges_reaches_the_renderer_or_is_refused(tmp_path, capsys, monkeypatch):
+    import jax.numpy as jnp
+
+    calls = []
+
+    def with_edges(scene, *, depth=None, spp=1, dtype=None, edges=0.0):
+        calls.append((edges, spp))
+        return jnp.zeros((scene.structure.height, scene.structure.width, 3))
+
+    def without_edges(scene, *, depth=None, spp=1, dtype=None):
+        raise AssertionError("not called")
+
+    deck = write_deck(tmp_path, SMALL + "rend a.ras\n")
+    monkeypatch.setattr(sys.modules["rtjax.render"], "render", with_edges)
+    assert render_main(capsys, deck, "-o", tmp_path / "out", "--edges", "1.5", "--spp", "2")[0] == 0
+    assert calls == [(1.5, 2)]
+    monkeypatch.setattr(sys.modules["rtjax.render"], "render", without_edges)
+    code, _, err = render_main(capsys, deck, "-o", tmp_path / "out2", "--edges", "1")
+    assert code == 2 and one_error_line(err, "--edges: this build's renderer has no silhouette-aware mode")
+    assert not (tmp_path / "out2").exists()
