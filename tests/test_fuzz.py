@@ -547,25 +547,31 @@ def all_files(folder) -> list[str]:
     return sorted(out)
 
 
-def test_cli_malformed_decks_and_rasters(tmp_path):
+def test_cli_malformed_decks_and_rasters(tmp_path, capsys):
     camera = "eyep 9 0 0\nrefp 0 0 0\nvang 40 30\nsize 8\n"
     cases = {  # deck file → (bytes, line, fragment)
         "corrupt_texture.dat": (f"sphe 0 0 0 1\ntmap corrupt.ras\n{camera}rend a.ras\n".encode(), 2, "tmap: cannot read texture 'corrupt.ras': "),
-        "rle_texture.dat": (f"sphe 0 0 0 1\ntmap rle.ras 0 1\n{camera}rend a.ras\n".encode(), 2, "expands to"),
         "binary.dat": (b"sphe 0 0 0 1\nmirr\n\x00\x01\xfe\xff\n", 3, "the deck is not UTF-8 text (byte 0xfe)"),
+        "rle_texture.dat": (f"sphe 0 0 0 1\ntmap rle.ras 0 1\n{camera}rend a.ras\n".encode(), 2, "expands to"),
     }
     (tmp_path / "corrupt.ras").write_bytes(header(5, 4, 24, 60) + bytes(17))  # truncated
     (tmp_path / "rle.ras").write_bytes(header(2, 2, 24, 0, rtype=2) + b"\x80\xff\x07" * 4)  # expands past 2×2
-    procs = {}
     for name, (content, _, _) in cases.items():
         (tmp_path / name).write_bytes(content)
         (tmp_path / ("out_" + name)).mkdir()
-        procs[name] = popen_cli("render", name, "-o", "out_" + name, cwd=tmp_path)
+    # Two as real processes, side by side; the third in-process (the same code path).
+    procs = {name: popen_cli("render", name, "-o", "out_" + name, cwd=tmp_path) for name in list(cases)[:2]}
+    results = {}
     for name, proc in procs.items():
         stdout, stderr = proc.communicate(timeout=300)
+        results[name] = (proc.returncode, stdout.decode(), stderr.decode())
+    name = "rle_texture.dat"
+    code = cli.main(["render", str(tmp_path / name), "-o", str(tmp_path / ("out_" + name))])
+    captured = capsys.readouterr()
+    results[name] = (code, captured.out, captured.err)
+    for name, (code, out, err) in results.items():
         _, line, fragment = cases[name]
-        err = stderr.decode()
-        assert proc.returncode == 2 and stdout == b"", (name, err)
+        assert code == 2 and out == "", (name, err)
         assert "Traceback" not in err and len(err.splitlines()) == 1, err
         assert err.startswith(f"{name}:{line}: ") and fragment in err, err
         assert all_files(tmp_path / ("out_" + name)) == []
