@@ -102,13 +102,21 @@ def _render(params: Params, structure: Structure, depth: int, spp: int, tile: in
 
 
 def _edge_aware_sample(s: Structure, p: Params, offset, depth: int, spp: int, tile: int, width: float):
-    """One sample per pixel with its nearest silhouette box-filtered (see `rtjax.edges`)."""
+    """One sample per pixel with its nearest silhouette box-filtered (see `rtjax.edges`).
+
+    The inside and outside rays are traced in one call (2P rays): one compiled chain.
+    """
     o, d, fp = _edges.primary_footprint(p, s, offset, spp, width)
     tmin = spheres.tmin_for(spheres.scene_scale(p.centers, p.radii, p.eye))
     first = spheres.Hit(o, d, p.centers, p.radii, jnp.full(o.shape[1:], -1, jnp.int32), tmin)
     edge = _edges.choose_silhouette(o, d, fp, p.centers, p.radii, first)
     alpha, d_in, d_out = _edges.silhouette_split(o, d, fp, p.centers, p.radii, edge)
     none = jnp.full_like(edge, -1)
-    inside = jnp.clip(trace_tiled(s, p, o, d_in, depth, tile, (none, edge), fp), 0, 255)
-    outside = jnp.clip(trace_tiled(s, p, o, d_out, depth, tile, (edge, none), fp), 0, 255)
+
+    def both(a, b):
+        return jnp.concatenate([a, b], axis=-1)
+
+    fp2 = _edges.Footprint(both(fp.dx, fp.dx), both(fp.dy, fp.dy), width)
+    colour = trace_tiled(s, p, both(o, o), both(d_in, d_out), depth, tile, (both(none, edge), both(edge, none)), fp2)
+    inside, outside = jnp.split(jnp.clip(colour, 0, 255), 2, axis=-1)
     return jnp.where(edge >= 0, alpha * inside + (1 - alpha) * outside, inside)
