@@ -24,6 +24,19 @@ Derivatives (DECK.md §6: never NaN):
 
 The colour is linear in the texels, so a texture can be a fitted parameter.
 
+Speed: XLA's CPU atan2 costs about 20–25 ns per element (a scalar libm call), more
+than the rest of a segment's texture work. In float32, angles therefore come from
+`fast_atan2`, a branch-free polynomial (Abramowitz & Stegun 4.4.49) accurate to about
+3e-7 rad, about float32 rounding: u is off by at most ~5e-8, far below a texel.
+float64 (gradient checks, comparisons with the reference) uses the exact atan2.
+A cheap polynomial alone does not help inside the renderer: XLA's CPU fusion inlines
+cheap elementwise producers into every consumer, so (u, v) and the index arithmetic
+were recomputed per colour channel and per light. `textured_diffuse` therefore
+computes them under `lax.cond`s, which materialise each stage once (and skip it when
+no ray of a segment hits a textured sphere). Measured on the Level 4 deck, 320 × 210,
+CPU time per render against the same deck with plain opaque spheres: +32 % (the
+first version, one texture at a time with XLA's atan2: +148 %); its gradient +35 %.
+
 Several textures of different sizes are sampled in one pass: their texels are laid
 end to end in one (3, Σ h·w) array and each ray looks up its own texture's width,
 height and offset, so the cost of a segment does not grow with the number of textures.
@@ -33,6 +46,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
@@ -40,8 +54,61 @@ from jaxtyping import Array, Float, Int
 from .numerics import tiny
 
 
+#: atan(a) ≈ a·Σ c_k·a^(2k) on [0, 1], |error| ≤ 2e-8 (Abramowitz & Stegun 4.4.49).
+_ATAN_COEFFS = (
+    1.0,
+    -0.3333314528,
+    0.1999355085,
+    -0.1420889944,
+    0.1065626393,
+    -0.0752896400,
+    0.0429096138,
+    -0.0161657367,
+    0.0028662257,
+)
+
+
+@jax.custom_jvp
+def fast_atan2(y, x):
+    """atan2(y, x) from a polynomial, elementwise ops only (vectorises on a CPU).
+
+    Octant reduction to a = min/max of |x|, |y| in [0, 1], then a·poly(a²). Accuracy
+    about 1e-7 rad in float32, 2e-8 rad in float64. atan2(0, 0) = 0.
+    The derivative is the exact one, (x·dy − y·dx)/(x² + y²), computed on inputs scaled
+    by max(|x|, |y|) so that it stays finite for tiny arguments; 0 at (0, 0).
+    """
+    ax, ay = jnp.abs(x), jnp.abs(y)
+    swap = ay > ax
+    num = jnp.where(swap, ax, ay)
+    den = jnp.where(swap, ay, ax)
+    a = num / jnp.where(den > 0, den, 1)
+    s = a * a
+    poly = jnp.asarray(_ATAN_COEFFS[-1], a.dtype)
+    for c in _ATAN_COEFFS[-2::-1]:
+        poly = poly * s + c
+    r = a * poly
+    r = jnp.where(swap, jnp.pi / 2 - r, r)
+    r = jnp.where(x < 0, jnp.pi - r, r)
+    return jnp.where(y < 0, -r, r)
+
+
+@fast_atan2.defjvp
+def _fast_atan2_jvp(primals, tangents):
+    y, x = primals
+    dy, dx = tangents
+    m = jnp.maximum(jnp.abs(x), jnp.abs(y))
+    ok = m > 0
+    m = jnp.where(ok, m, 1)
+    xs, ys = x / m, y / m
+    den = jnp.where(ok, (xs * xs + ys * ys) * m, 1)  # xs² + ys² ∈ [1, 2] where ok
+    return fast_atan2(y, x), jnp.where(ok, (xs * dy - ys * dx) / den, 0)
+
+
 def sphere_uv(p: Float[Array, "3 p"]) -> tuple[Float[Array, " p"], Float[Array, " p"]]:
-    """(u, v) in [0, 1]² for outward normals p (unit, or any nonzero length)."""
+    """(u, v) in [0, 1]² for outward normals p (unit, or any nonzero length).
+
+    float64: exact atan2; float32: `fast_atan2` (see the module's note on speed)."""
+    atan2 = jnp.arctan2 if p.dtype == jnp.float64 else fast_atan2
     t = tiny(p.dtype)
     rho2 = p[0] * p[0] + p[1] * p[1]
     pole = rho2 <= t
@@ -49,8 +116,8 @@ def sphere_uv(p: Float[Array, "3 p"]) -> tuple[Float[Array, " p"], Float[Array, 
     py = jnp.where(pole, 0, p[1])
     rho = jnp.where(pole, 0, jnp.sqrt(jnp.where(pole, 1, rho2)))
     pz = jnp.where(pole & (p[2] * p[2] <= t), 1, p[2])
-    u = jnp.arctan2(py, px) / (2 * jnp.pi) + 0.5
-    v = jnp.arctan2(rho, pz) / jnp.pi
+    u = atan2(py, px) / (2 * jnp.pi) + 0.5
+    v = atan2(rho, pz) / jnp.pi
     return u, v
 
 
@@ -99,12 +166,20 @@ def textured_diffuse(
 ) -> Float[Array, "3 p"]:
     """Per ray, the texture's colour where `texture_of` ≥ 0 (an index into `textures`),
     else `d` unchanged. One (u, v) and one bilinear lookup per ray, whatever the count
-    and sizes of the textures."""
+    and sizes of the textures.
+
+    The work runs under `lax.cond`s on "some ray hits a textured sphere": skipped when
+    none does, and, more importantly on a CPU, each stage's result is materialised
+    once. XLA's CPU fusion would otherwise inline the cheap-but-long (u, v) polynomial
+    and index arithmetic into every consumer, once per colour channel and per light,
+    which measured slower than the lookup itself. Both modes of differentiation go
+    through `lax.cond`.
+    """
     if not textures:
         return d
     shapes = [t.shape[:2] for t in textures]
     if len(textures) == 1:
-        (h, w), = shapes
+        ((h, w),) = shapes
         sel = (h, w, 0)
         flat = textures[0].reshape(h * w, 3).T
     else:
@@ -115,7 +190,15 @@ def textured_diffuse(
         ws = jnp.asarray(np.array([w for _, w in shapes], np.int32))[k]
         sel = (hs, ws, jnp.asarray(offsets)[k])
         flat = jnp.concatenate([t.reshape(-1, 3) for t in textures], axis=0).T
-    u, v = sphere_uv(p)
-    h, w, offset = sel
-    colour = _sample(flat.astype(p.dtype), u, v, w, h, offset) / 255
-    return jnp.where(texture_of >= 0, colour, d)
+    flat = flat.astype(p.dtype)
+    textured = texture_of >= 0
+    some = jnp.any(textured)
+
+    def lookup(args):
+        flat, p, d = args
+        uv = jax.lax.cond(some, lambda q: jnp.stack(sphere_uv(q)), lambda q: jnp.zeros_like(q[:2]), p)
+        h, w, offset = sel
+        colour = _sample(flat, uv[0], uv[1], w, h, offset) / 255
+        return jnp.where(textured, colour, d)
+
+    return jax.lax.cond(some, lookup, lambda args: args[2], (flat, p, d))

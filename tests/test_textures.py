@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import re
 
 import jax
 import jax.numpy as jnp
@@ -24,7 +25,7 @@ import reference
 import rtjax
 from rtjax.images import load_image, save_image, to_uint8
 from rtjax.sunraster import write_sunraster
-from rtjax.textures import bilinear, sphere_uv, texture_colour, textured_diffuse
+from rtjax.textures import bilinear, fast_atan2, sphere_uv, texture_colour, textured_diffuse
 
 # --------------------------------------------------------------------------------------
 # A texture whose texels encode their own coordinates: R = 10 + 30x, G = 20 + 40y, B = 5x².
@@ -98,6 +99,25 @@ def test_uv_conventions():
     np.testing.assert_allclose(np.asarray(u1), np.arctan2(qn[1], qn[0]) / (2 * np.pi) + 0.5, atol=1e-12)
     np.testing.assert_allclose(np.asarray(u2), np.asarray(u1), atol=1e-12)
     np.testing.assert_allclose(np.asarray(v2), np.asarray(v1), atol=1e-12)
+
+
+def test_fast_atan2_in_float32():
+    """float32 angles come from a polynomial: within 3e-7 rad of atan2 (u within 5e-8,
+    far below a texel), exact at the axes, finite derivatives everywhere (also at 0, 0)."""
+    rng = np.random.default_rng(6)
+    y = np.concatenate([rng.normal(size=20000), rng.normal(size=100) * 1e-30, [0, 0, 1, -1, 1, 0, -0.0, 3, -3]])
+    x = np.concatenate([rng.normal(size=20000), rng.normal(size=100) * 1e-30, [0, 1, 0, 0, -1, -1, -1, 3, -3]])
+    got = np.asarray(jax.jit(fast_atan2)(jnp.asarray(y, jnp.float32), jnp.asarray(x, jnp.float32)), float)
+    want = np.arctan2(y.astype(np.float32).astype(float), x.astype(np.float32).astype(float))
+    off = np.abs(got - want)
+    off = np.minimum(off, 2 * np.pi - off)  # ±π on the branch cut is the same angle
+    assert off.max() < 3e-7
+    np.testing.assert_allclose(got[-9:-3], [0, 0, np.pi / 2, -np.pi / 2, np.pi * 3 / 4, np.pi], atol=3e-7)
+    g = jax.jit(jax.vmap(jax.grad(fast_atan2, argnums=(0, 1))))(jnp.asarray(y, jnp.float32), jnp.asarray(x, jnp.float32))
+    assert all(np.all(np.isfinite(np.asarray(a))) for a in g)
+    r2 = x[:20000] ** 2 + y[:20000] ** 2
+    np.testing.assert_allclose(np.asarray(g[0])[:20000] * r2, x[:20000], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(g[1])[:20000] * r2, -y[:20000], rtol=1e-5, atol=1e-6)
 
 
 def test_bilinear_between_texel_centres():
@@ -362,14 +382,22 @@ def test_missing_or_unreadable_texture_is_a_deck_error(tex_dir, monkeypatch):
 
 
 def test_scenes_without_textures_compile_no_texture_code(tex_dir):
-    def jaxpr(scene):
+    """The texture code's marks in the traced render: atan2 (float64; float32 uses a
+    polynomial), and floor and rem (the bilinear lookup) in both."""
+
+    def jaxpr(scene, dtype):
+        scene = scene.astype(dtype)
         return str(jax.make_jaxpr(lambda p: rtjax.render(rtjax.Scene(scene.structure, p)))(scene.params))
+
+    def marks(text):
+        return {m for m in ("atan2", "floor", "rem") if re.search(rf"= {m}\b", text)}
 
     rest = "plig 1 -1 1 200 200 200\nelig 0.2\neyep 0 -30 0\nrefp 0 0 0\nvang 20 20\nsize 5\nrend o.sunimg\n"
     plain = rtjax.load_deck(write_deck(tex_dir, "sphe 0 0 0 5\nopaq 1 0 0 0.3 9\nsphe 7 3 0 2\nopaq 0 1 0 0 1\n" + rest, "p.dat")).frames[0].scene
     textured = rtjax.load_deck(write_deck(tex_dir, "sphe 0 0 0 5\ntmap coord.sunimg 0.3 9\nsphe 7 3 0 2\nopaq 0 1 0 0 1\n" + rest, "t.dat")).frames[0].scene
-    assert "atan2" not in jaxpr(plain)
-    assert "atan2" in jaxpr(textured)
+    assert marks(jaxpr(plain, jnp.float64)) == marks(jaxpr(plain, jnp.float32)) == set()
+    assert marks(jaxpr(textured, jnp.float64)) == {"atan2", "floor", "rem"}
+    assert marks(jaxpr(textured, jnp.float32)) == {"floor", "rem"}
 
 
 # --------------------------------------------------------------------------------------
