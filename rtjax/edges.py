@@ -154,11 +154,25 @@ def _bcast(fp: Footprint) -> Footprint:
     return Footprint(fp.dx[:, None, :], fp.dy[:, None, :], fp.width)
 
 
+def _chosen_or_regular(edge, o, d, centers, radii):
+    """Centre and radius of each ray's chosen sphere; where none is chosen, a stand-in
+    sphere well clear of the ray (so the unused branch has finite derivatives: the
+    double-where pattern, applied to the geometry)."""
+    e = jnp.maximum(edge, 0)
+    c, r = centers.T[:, e], radii[e]
+    x, y, z = d
+    use_z = jnp.abs(z) < 0.9
+    side = normalize(jnp.stack([jnp.where(use_z, y, 0), jnp.where(use_z, -x, z), jnp.where(use_z, 0, -y)]))
+    stand_in = o + r * (3 * d + 2 * side)  # d × ẑ or d × x̂, unit: 2r off the ray, 3r along it
+    has = edge >= 0
+    return jnp.where(has, c, jax.lax.stop_gradient(stand_in)), r
+
+
 def silhouette_split(o, d, fp: Footprint, centers, radii, edge):
     """For the chosen silhouette: coverage α of the pixel's box and the directions of
     rays through the centroids of its inside and outside parts (differentiable)."""
-    e = jnp.maximum(edge, 0)
-    delta, nx, ny, _, _ = _silhouette_terms(o, d, fp, centers.T[:, e], radii[e])
+    c, r = _chosen_or_regular(edge, o, d, centers, radii)
+    delta, nx, ny, _, _ = _silhouette_terms(o, d, fp, c, r)
     alpha, z_in, z_out = split_box(-delta / fp.width, nx, ny)
     inward = -(nx * fp.dx + ny * fp.dy) * fp.width  # one box side inward, as a change of d
     has = edge >= 0
@@ -212,7 +226,7 @@ def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, dpx, dpy,
     score = jnp.where(near, jnp.abs(delta), jnp.inf)
     edge = jnp.where(jnp.isfinite(jnp.min(score, axis=0)), jnp.argmin(score, axis=0), -1)
     hard = spheres.transmission(hit.point, ray, centers, radii, hit.index, tmin, factor, skip=edge)
-    e = jnp.maximum(edge, 0)
-    delta_e, nx, ny, _ = _shadow_terms(hit.point, ray, dpx, dpy, centers.T[:, e], radii[e])
-    soft = 1 - (1 - factor[e]) * coverage(-delta_e / width, nx, ny)
+    c, r = _chosen_or_regular(edge, hit.point, ray, centers, radii)
+    delta_e, nx, ny, _ = _shadow_terms(hit.point, ray, dpx, dpy, c, r)
+    soft = 1 - (1 - factor[jnp.maximum(edge, 0)]) * coverage(-delta_e / width, nx, ny)
     return hard * jnp.where(edge >= 0, soft, 1)

@@ -126,9 +126,10 @@ def trace(
 ) -> Float[Array, "3 p"]:
     """Colour seen along each ray (unclamped), following the chain for `depth` more segments.
 
-    After the first segment, a segment runs only if some ray is still alive (a
-    `lax.cond`, which skips the work at run time and differentiates in both modes):
-    on most tiles of most scenes the chain ends after one or two segments.
+    The segments after the first are one `lax.scan` body (compiled once, whatever the
+    depth) in which a segment runs only if some ray is still alive (a `lax.cond`, which
+    skips the work at run time and differentiates in both modes): on most tiles of
+    most scenes the chain ends after one or two segments.
     `toggles` = (exclude, force), per ray a sphere index or −1, alter the first
     segment for the silhouette mode (see `spheres.Hit`); `footprint` (the primary
     rays' change per pixel) softens the first segment's shadow edges (`edges`).
@@ -142,13 +143,15 @@ def trace(
         jnp.zeros_like(o),
     )
     state = _segment(s, p, m, state, toggles, footprint)
-    for _ in range(depth if s.needs_secondary_rays else 0):
-        state = jax.lax.cond(
-            jnp.any(state[3] > 0),
-            lambda st: _segment(s, p, m, st),
-            lambda st: st,
-            state,
-        )
+    if depth == 0 or not s.needs_secondary_rays:
+        return state[4]
+
+    def further(st, _):
+        st = jax.lax.cond(jnp.any(st[3] > 0), lambda x: _segment(s, p, m, x), lambda x: x, st)
+        return st, None
+
+    # One compiled segment, run `depth` times (compile time does not grow with depth).
+    state, _ = jax.lax.scan(further, state, length=depth)
     return state[4]
 
 
