@@ -1,0 +1,9 @@
+"""fitting: recover what a scene must have been from a target image, with optimistix.
+
+Depends only on rtjax's public API.
+"""
+
+from .errors import FitError as FitError
+from .objective import apply_nuisance as apply_nuisance, downsample as downsample, load_target as load_target
+from .select import FAMILIES as FAMILIES, Selection as Selection, parse_free as parse_free
+from .solve import SOLVERS as SOLVERS, FitResult as FitResult, fit as fit

@@ -125,8 +125,11 @@ class Scene(eqx.Module):
         return Scene(self.structure, Params(**new))
 
     def resized(self, width: int, height: int | None = None) -> "Scene":
-        """The same scene rendered at another image size (height follows the aspect ratio)."""
-        s = self.structure
+        """The same scene at another image width; the height follows from `vang` as a
+        deck's `size` would give it (DECK.md §2) unless given."""
+        from .camera import image_height
+
         if height is None:
-            height = max(1, int(np.floor(width * s.height / s.width + 0.5)))
-        return Scene(s.replace(width=int(width), height=int(height)), self.params)
+            ha, va = (float(x) for x in np.asarray(self.params.vang))
+            height = image_height(int(width), ha, va)
+        return Scene(self.structure.replace(width=int(width), height=int(height)), self.params)
