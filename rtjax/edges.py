@@ -2,29 +2,30 @@
 
 A pixel-centre render is piecewise constant across a sphere's silhouette and across a
 shadow's edge, so its derivative misses what moves them. Spheres make both edges
-analytic, so this mode blends, per pixel, across the one nearest edge:
+analytic. For any ray (o, d) and sphere (c, r), the ray passes the sphere's outline at
+the signed distance |l| − r (l: the offset of the ray from the centre), and with the
+ray's differentials (how o and d change per pixel: ∂o, ∂d, carried along the chain
+through reflections and refractions by forward-mode AD) that distance changes per
+pixel by l̂·(∂o + t·∂d) across and down, t being where along the ray it passes closest.
+Their ratio δ is the signed distance to the edge in pixels and the gradient's
+direction is the edge's normal in the image. Two edges are handled that way:
 
-* Primary silhouettes. For each sphere the sine of the angle between the pixel's ray
-  and the sphere's silhouette cone is closed-form, g = (l·q + b·r)/D² (l: distance from
-  the centre to the ray, D: from the centre to the eye, q = √(D² − r²), b = (o − c)·d);
-  its rate per pixel comes from the ray's change per pixel (a jvp of the camera), so
-  δ = g/|∇g| is the signed distance to the silhouette in pixels, and the edge's
-  direction in the image is ∇g/|∇g|. The nearest visible silhouette within reach is
-  blended: pixel = α·C_in + (1 − α)·C_out, where α is the fraction of a box of side
-  `width` pixels inside the silhouette (exact for a straight edge), C_in the colour
-  of a ray through the centroid of the box's inside part (made to meet the sphere,
-  grazing its silhouette if the linearised offset misses it) and C_out the colour of
-  a ray through the centroid of the outside part, traced with that sphere removed.
-* Shadow edges at primary hits. A parallel light's shadow of sphere j is a cylinder;
-  the signed distance of the shadow ray to it is |l| − r, and its rate per pixel
-  follows from the hit point's motion per pixel on the surface. The nearest occluder
-  edge's hard factor (0 or kt²) becomes 1 − (1 − τ)·α.
+* Silhouettes, on every segment of the chain (seen directly, in mirrors, through
+  glass). Per pixel the one visible silhouette nearest to its ray over the whole chain
+  is blended: pixel = α·C_in + (1 − α)·C_out, α the fraction of a box of `width`
+  pixels on the sphere's side of the edge (exact for a straight edge: a trapezoid's
+  CDF). Both sides are traced from that segment on, through the centroids of their
+  parts of the box (exact for a straight edge and colours linear across the pixel):
+  C_out with the sphere removed, C_in with it met (grazing its outline if the offset
+  ray misses it).
+* Shadow edges, at every hit: a parallel light's shadow of a sphere is a cylinder, the
+  shadow ray's distance to it is |l| − r, and the hit point's motion per pixel gives
+  its rate. The nearest occluder edge's hard factor (0 or kt²) becomes 1 − (1 − τ)·α.
 
-What it does not cover: silhouettes and shadow edges seen in mirrors or through glass
-(secondary segments are traced as in the plain mode), a second edge in the same pixel,
-and the specular term's cut-off at the terminator. As `width` → 0, α becomes a step
-and the image is the plain one. Cost: two traces (one with the edge sphere toggled)
-plus per-sphere edge distances: about 2–3× a plain render.
+Not covered: a second edge in the same pixel (the nearer one in pixels wins), the
+specular term's cut-off at a terminator, and the curvature of an outline within a
+pixel. As `width` → 0, α becomes a step and the image is the plain one. Cost: the
+chain with its differentials, plus a second chain from the edge's segment on.
 """
 
 from __future__ import annotations
@@ -33,12 +34,10 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Bool, Float, Int
 
-from .camera import primary_rays
-from .numerics import dot, normalize, safe_div, safe_sqrt, tiny
-from .scene import Params, Structure
 from . import spheres
+from .numerics import dot, normalize, safe_div, safe_sqrt, tiny
 
 #: Smallest |component| of an edge's normal used in the box filter: keeps the
 #: trapezoid formula's division well conditioned for axis-aligned edges.
@@ -89,69 +88,46 @@ def split_box(x, a, b):
     return alpha, inside, outside
 
 
-class Footprint(NamedTuple):
-    """How a primary ray's direction changes per sample step, across and down (3, P)."""
+class Differentials(NamedTuple):
+    """How each ray's origin and direction change per sample step, across and down."""
 
+    ox: Float[Array, "3 p"]
     dx: Float[Array, "3 p"]
+    oy: Float[Array, "3 p"]
     dy: Float[Array, "3 p"]
-    width: float  # edge width in sample steps (pixels when spp = 1)
 
 
-def primary_footprint(p: Params, s: Structure, offset, spp: int, width: float):
-    """Primary rays and their footprint: d and ∂d per sample step, by forward-mode AD."""
+def hit_motion(hit: spheres.Hit, o, d, diff: Differentials):
+    """How the hit point moves per sample step: ∂P = ∂o + t·∂d + ∂t·d on the surface,
+    ∂t = −N·(∂o + t·∂d)/(N·d). At grazing incidence the motion is unbounded; |N·d| is
+    floored at 0.05 there."""
+    nd = dot(hit.normal_out, d)
+    nd = jnp.where(nd < 0, jnp.minimum(nd, -0.05), jnp.maximum(nd, 0.05))
 
-    def dirs(off):
-        return primary_rays(p.eye, p.refp, p.vang, s.width, s.height, off)[1]
+    def move(do, dd):
+        v = do + hit.t * dd
+        return v - dot(hit.normal_out, v) / nd * d
 
-    step = jnp.asarray(1 / spp, offset.dtype)
-    zero = jnp.zeros((), offset.dtype)
-    d, dx = jax.jvp(dirs, (offset,), (jnp.stack([step, zero]),))
-    _, dy = jax.jvp(dirs, (offset,), (jnp.stack([zero, step]),))
-    o = jnp.broadcast_to(p.eye[:, None], d.shape)
-    return o, d, Footprint(dx, dy, width)
+    return move(diff.ox, diff.dx), move(diff.oy, diff.dy)
 
 
-def _silhouette_terms(o, d, fp: Footprint, c, r):
-    """Signed distance to the silhouette in samples, edge normal (nx, ny), eye outside?
+def edge_terms(o, d, ox, dx, oy, dy, c, r):
+    """Signed distance δ (in sample steps) from rays to a sphere's outline, positive
+    outside; the outline's normal (nx, ny) in the image; where along the ray it passes
+    closest (t); whether the ray starts outside the sphere.
 
-    Works for (3, P) against one sphere per ray (c: (3, P), r: (P,)) and broadcasts to
-    (3, N, P) against all spheres.
-    """
+    Rays (3, P) against one sphere per ray (c: (3, P)), or broadcast (3, N, P)."""
     f = o - c
     b = dot(f, d)
     lvec = f - b * d
-    l2 = dot(lvec, lvec)
-    d2 = dot(f, f)
-    outside = d2 > r**2
-    l = safe_sqrt(l2, jnp.asarray(tiny(o.dtype), o.dtype))
-    q = safe_sqrt(d2 - r**2, (1e-6 * r) ** 2)
-    g = safe_div(l * q + b * r, d2)
+    floor = jnp.asarray(tiny(o.dtype), o.dtype)
+    l = safe_sqrt(dot(lvec, lvec), floor)
     lhat = normalize(lvec)
-    gx, gy = dot(lhat, fp.dx), dot(lhat, fp.dy)
-    rate = safe_sqrt(gx**2 + gy**2, jnp.asarray(tiny(o.dtype), o.dtype))
-    return safe_div(g, rate), safe_div(gx, rate), safe_div(gy, rate), outside, b
-
-
-def choose_silhouette(o, d, fp: Footprint, centers, radii, plain: spheres.Hit) -> Int[Array, " p"]:
-    """Per ray, the sphere whose visible silhouette is nearest within reach, or −1.
-
-    Visible: the centre ray hits that sphere first (from outside), or it misses it and
-    the sphere's closest point to the ray lies in front of whatever the ray hits.
-    """
-    o, d, fp, centers, radii = jax.lax.stop_gradient((o, d, fp, centers, radii))
-    c = centers.T[:, :, None]
-    delta, _, _, outside, b = _silhouette_terms(o[:, None, :], d[:, None, :], _bcast(fp), c, radii[:, None])
-    n = centers.shape[0]
-    is_hit = plain.index[None, :] == jnp.arange(n)[:, None]
-    in_front = (-b > 0) & (~plain.found[None, :] | (-b < plain.t[None, :]))
-    visible = outside & jnp.where(is_hit, plain.entering[None, :] & (delta < 0), (delta >= 0) & in_front)
-    score = jnp.where(visible & (jnp.abs(delta) < fp.width), jnp.abs(delta), jnp.inf)
-    best = jnp.argmin(score, axis=0)
-    return jnp.where(jnp.isfinite(jnp.min(score, axis=0)), best, -1)
-
-
-def _bcast(fp: Footprint) -> Footprint:
-    return Footprint(fp.dx[:, None, :], fp.dy[:, None, :], fp.width)
+    t = -b
+    rx = dot(lhat, ox + t * dx)
+    ry = dot(lhat, oy + t * dy)
+    rate = safe_sqrt(rx**2 + ry**2, floor)
+    return safe_div(l - r, rate), safe_div(rx, rate), safe_div(ry, rate), t, dot(f, f) > r**2
 
 
 def _chosen_or_regular(edge, o, d, centers, radii):
@@ -164,46 +140,19 @@ def _chosen_or_regular(edge, o, d, centers, radii):
     use_z = jnp.abs(z) < 0.9
     side = normalize(jnp.stack([jnp.where(use_z, y, 0), jnp.where(use_z, -x, z), jnp.where(use_z, 0, -y)]))
     stand_in = o + r * (3 * d + 2 * side)  # d × ẑ or d × x̂, unit: 2r off the ray, 3r along it
-    has = edge >= 0
-    return jnp.where(has, c, jax.lax.stop_gradient(stand_in)), r
+    return jnp.where(edge >= 0, c, jax.lax.stop_gradient(stand_in)), r
 
 
-def silhouette_split(o, d, fp: Footprint, centers, radii, edge):
-    """For the chosen silhouette: coverage α of the pixel's box and the directions of
-    rays through the centroids of its inside and outside parts (differentiable)."""
-    c, r = _chosen_or_regular(edge, o, d, centers, radii)
-    delta, nx, ny, _, _ = _silhouette_terms(o, d, fp, c, r)
-    alpha, z_in, z_out = split_box(-delta / fp.width, nx, ny)
-    inward = -(nx * fp.dx + ny * fp.dy) * fp.width  # one box side inward, as a change of d
-    has = edge >= 0
-    d_in = jnp.where(has, normalize(d + z_in * inward), d)
-    d_out = jnp.where(has, normalize(d + z_out * inward), d)
-    return alpha, d_in, d_out
+def _all_spheres(o, d, ox, dx, oy, dy, centers, radii):
+    """`edge_terms` of every ray against every sphere, (N, P), without derivatives."""
+    sg = jax.lax.stop_gradient
+    rays = [sg(a)[:, None, :] for a in (o, d, ox, dx, oy, dy)]
+    return edge_terms(*rays, sg(centers).T[:, :, None], sg(radii)[:, None])
 
 
-def hit_footprint(hit: spheres.Hit, d, fp: Footprint):
-    """How the first hit point moves per sample step: t·(∂d − (N·∂d)/(N·d)·d).
-
-    At grazing incidence the motion is unbounded; |N·d| is floored at 0.05 there.
-    """
-    nd = dot(hit.normal_out, d)
-    nd = jnp.where(nd < 0, jnp.minimum(nd, -0.05), jnp.maximum(nd, 0.05))
-    move = [hit.t * (dd - dot(hit.normal_out, dd) / nd * d) for dd in (fp.dx, fp.dy)]
-    return move[0], move[1]
-
-
-def _shadow_terms(point, ray, dpx, dpy, c, r):
-    """Signed distance (in samples) from shadow rays to an occluder's shadow cylinder,
-    the edge normal in the image, and b = (P − c)·L (negative: the occluder is ahead)."""
-    f = point - c
-    bl = dot(f, ray)
-    lvec = f - bl * ray
-    floor = jnp.asarray(tiny(point.dtype), point.dtype)
-    l = safe_sqrt(dot(lvec, lvec), floor)
-    lhat = normalize(lvec)
-    sx, sy = dot(lhat, dpx), dot(lhat, dpy)
-    rate = safe_sqrt(sx**2 + sy**2, floor)
-    return safe_div(l - r, rate), safe_div(sx, rate), safe_div(sy, rate), bl
+def _nearest(score):
+    """Per ray, the sphere of smallest finite score, or −1."""
+    return jnp.where(jnp.isfinite(jnp.min(score, axis=0)), jnp.argmin(score, axis=0), -1)
 
 
 def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, dpx, dpy, width: float):
@@ -216,17 +165,75 @@ def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, dpx, dpy,
     """
     n = centers.shape[0]
     ray = jnp.broadcast_to(light[:, None], hit.point.shape)
-    sg = jax.lax.stop_gradient
-    delta, _, _, bl = _shadow_terms(
-        sg(hit.point)[:, None, :], sg(ray)[:, None, :], sg(dpx)[:, None, :], sg(dpy)[:, None, :],
-        sg(centers).T[:, :, None], sg(radii)[:, None],
-    )
+    still = jnp.zeros_like(ray)  # a parallel light: the shadow ray's direction does not move
+    delta, _, _, t, _ = _all_spheres(hit.point, ray, dpx, still, dpy, still, centers, radii)
     own = hit.index[None, :] == jnp.arange(n)[:, None]
-    near = (-bl > tmin) & ~own & hit.found[None, :] & (jnp.abs(delta) < width)
-    score = jnp.where(near, jnp.abs(delta), jnp.inf)
-    edge = jnp.where(jnp.isfinite(jnp.min(score, axis=0)), jnp.argmin(score, axis=0), -1)
+    near = (t > tmin) & ~own & hit.found[None, :] & (jnp.abs(delta) < width)
+    edge = _nearest(jnp.where(near, jnp.abs(delta), jnp.inf))
     hard = spheres.transmission(hit.point, ray, centers, radii, hit.index, tmin, factor, skip=edge)
     c, r = _chosen_or_regular(edge, hit.point, ray, centers, radii)
-    delta_e, nx, ny, _ = _shadow_terms(hit.point, ray, dpx, dpy, c, r)
+    delta_e, nx, ny, _, _ = edge_terms(hit.point, ray, dpx, still, dpy, still, c, r)
     soft = 1 - (1 - factor[jnp.maximum(edge, 0)]) * coverage(-delta_e / width, nx, ny)
     return hard * jnp.where(edge >= 0, soft, 1)
+
+
+class Best(NamedTuple):
+    """The nearest visible silhouette found so far along each pixel's chain."""
+
+    score: Float[Array, " p"]  # |δ| in sample steps (inf: none yet)
+    edge: Int[Array, " p"]  # its sphere, or −1
+    on_hit: Bool[Array, " p"]  # the ray met that sphere (else it passed beside it)
+    rays: object  # the chain's rays at that segment (trace.Rays), before it
+    diff: Differentials
+
+
+class EdgeWatch:
+    """Folded over a chain's segments: keeps, per pixel, the visible silhouette nearest
+    to its ray. Visible: the segment's ray meets that sphere first, from outside; or it
+    misses it and passes closest to it in front of whatever it meets."""
+
+    def __init__(self, centers, radii, tmin, width: float):
+        self.centers, self.radii, self.tmin, self.width = centers, radii, tmin, width
+
+    def __call__(self, rays, diff: Differentials, hit: spheres.Hit, best: Best | None) -> Best:
+        n = self.centers.shape[0]
+        delta, _, _, t, outside = _all_spheres(rays.o, rays.d, *diff, self.centers, self.radii)
+        k = jnp.arange(n)[:, None]
+        is_hit = hit.index[None, :] == k
+        met = is_hit & hit.entering[None, :] & (delta < 0)
+        passed = ~is_hit & (delta >= 0) & (t > self.tmin) & (~hit.found[None, :] | (t < hit.t[None, :]))
+        ok = (rays.weight > 0)[None, :] & outside & (rays.origin[None, :] != k) & (met | passed)
+        score = jnp.where(ok & (jnp.abs(delta) < self.width), jnp.abs(delta), jnp.inf)
+        edge = _nearest(score)
+        here = Best(jnp.min(score, axis=0), edge, hit.index == edge, rays, diff)
+        if best is None:
+            return here
+        better = here.score < best.score
+        return jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), here, best)
+
+
+class Sides(NamedTuple):
+    """Both sides of each pixel's chosen edge: rays through the centroids of the two
+    parts of the pixel's box, and the fraction α on the edge sphere's side."""
+
+    edge: Int[Array, " p"]
+    alpha: Float[Array, " p"]
+    o_in: Float[Array, "3 p"]
+    d_in: Float[Array, "3 p"]
+    o_out: Float[Array, "3 p"]
+    d_out: Float[Array, "3 p"]
+
+
+def both_sides(best: Best, centers, radii, width: float) -> Sides:
+    """Coverage α (differentiable in the scene) and the rays through the centroids of
+    the inside and outside parts of the pixel's box, offset along the ray differentials."""
+    r0, df = best.rays, best.diff
+    c, r = _chosen_or_regular(best.edge, r0.o, r0.d, centers, radii)
+    delta, nx, ny, _, _ = edge_terms(r0.o, r0.d, *df, c, r)
+    alpha, z_in, z_out = split_box(-delta / width, nx, ny)
+
+    def ray(z):  # z along the inward normal −(nx, ny), in box sides
+        sx, sy = -z * width * nx, -z * width * ny
+        return r0.o + sx * df.ox + sy * df.oy, normalize(r0.d + sx * df.dx + sy * df.dy)
+
+    return Sides(best.edge, alpha, *ray(z_in), *ray(z_out))

@@ -8,11 +8,11 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from . import edges as _edges, spheres
 from .camera import primary_rays, subpixel_offsets
+from .edges import Differentials
 from .errors import RtjaxError
 from .scene import Params, Scene, Structure
-from .trace import trace_tiled
+from .trace import tiled, trace, trace_edges
 
 
 def resolve_dtype(scene: Scene, dtype) -> jnp.dtype:
@@ -54,10 +54,11 @@ def render(
       else 0); a ray still alive after that contributes black.
     spp: k for k×k samples per pixel on a regular grid, each clamped, then averaged.
     dtype: float32 or float64 (default: the scene's own, float32 for a loaded deck).
-    edges: silhouette-aware mode: the nearest sphere silhouette and shadow edge in each
-      pixel are box-filtered over `edges` pixels (1 = the pixel's own box), so the
-      image is antialiased at edges and its derivative includes their motion (see
-      `rtjax.edges`). 0 (default) renders pixel centres.
+    edges: silhouette-aware mode: each pixel's nearest silhouette (seen directly, in a
+      mirror or through glass) and each hit's nearest shadow edge are box-filtered over
+      `edges` pixels (1 = the pixel's own box), so the image is antialiased at edges and
+      its derivative includes their motion (see `rtjax.edges`). 0 (default) renders
+      pixel centres.
     tile: rays traced together (default: 2¹⁷ on a CPU, 2²⁰ on an accelerator); the
       image does not depend on it, only speed and memory do.
 
@@ -90,7 +91,7 @@ def _render(params: Params, structure: Structure, depth: int, spp: int, tile: in
         if edges > 0:
             return _edge_aware_sample(s, p, offset, depth, spp, tile, edges)
         o, d = primary_rays(p.eye, p.refp, p.vang, s.width, s.height, offset)
-        return jnp.clip(trace_tiled(s, p, o, d, depth, tile), 0, 255)
+        return jnp.clip(tiled(lambda o, d: trace(s, p, o, d, depth), tile, o, d), 0, 255)
 
     offsets = subpixel_offsets(spp, p.eye.dtype)
     if spp == 1:
@@ -102,21 +103,18 @@ def _render(params: Params, structure: Structure, depth: int, spp: int, tile: in
 
 
 def _edge_aware_sample(s: Structure, p: Params, offset, depth: int, spp: int, tile: int, width: float):
-    """One sample per pixel with its nearest silhouette box-filtered (see `rtjax.edges`).
+    """One sample per pixel with its nearest silhouette and shadow edges box-filtered."""
 
-    The inside and outside rays are traced in one call (2P rays): one compiled chain.
-    """
-    o, d, fp = _edges.primary_footprint(p, s, offset, spp, width)
-    tmin = spheres.tmin_for(spheres.scene_scale(p.centers, p.radii, p.eye))
-    first = spheres.Hit(o, d, p.centers, p.radii, jnp.full(o.shape[1:], -1, jnp.int32), tmin)
-    edge = _edges.choose_silhouette(o, d, fp, p.centers, p.radii, first)
-    alpha, d_in, d_out = _edges.silhouette_split(o, d, fp, p.centers, p.radii, edge)
-    none = jnp.full_like(edge, -1)
+    def directions(off):
+        return primary_rays(p.eye, p.refp, p.vang, s.width, s.height, off)[1]
 
-    def both(a, b):
-        return jnp.concatenate([a, b], axis=-1)
+    step, zero = jnp.asarray(1 / spp, offset.dtype), jnp.zeros((), offset.dtype)
+    d, dx = jax.jvp(directions, (offset,), (jnp.stack([step, zero]),))  # the rays' change per sample step
+    _, dy = jax.jvp(directions, (offset,), (jnp.stack([zero, step]),))
+    o = jnp.broadcast_to(p.eye[:, None], d.shape)
+    still = jnp.zeros_like(d)  # all primary rays leave the eye
 
-    fp2 = _edges.Footprint(both(fp.dx, fp.dx), both(fp.dy, fp.dy), width)
-    colour = trace_tiled(s, p, both(o, o), both(d_in, d_out), depth, tile, (both(none, edge), both(edge, none)), fp2)
-    inside, outside = jnp.split(jnp.clip(colour, 0, 255), 2, axis=-1)
-    return jnp.where(edge >= 0, alpha * inside + (1 - alpha) * outside, inside)
+    def run(o, d, ox, dx, oy, dy):
+        return trace_edges(s, p, o, d, Differentials(ox, dx, oy, dy), depth, width)
+
+    return tiled(run, tile, o, d, still, dx, still, dy)

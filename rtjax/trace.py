@@ -90,81 +90,172 @@ def next_direction(s: Structure, p: Params, idx, d, n, entering):
     return jnp.where(glass & (k > 0), refracted, reflected)
 
 
-def _segment(s: Structure, p: Params, m: Material, state, toggles=None, footprint=None):
-    """One segment of the chain for every ray: hit, local light, the next ray.
+class Rays(NamedTuple):
+    """The chain's state: one ray per pixel, the colour gathered so far, its weight."""
 
-    `toggles` and `footprint` apply to the first segment only (silhouette mode).
-    """
-    o, d, origin, weight, colour = state
-    toggles = toggles if toggles is not None else (None, None)
-    hit = spheres.Hit(o, d, p.centers, p.radii, origin, m.tmin, *toggles)
-    entering = hit.entering
-    n = jnp.where(entering, hit.normal_out, -hit.normal_out)
-    soft = None
-    if footprint is not None:
-        soft = (*edges.hit_footprint(hit, d, footprint), footprint.width)
-    local = shade_hit(s, p, m, hit, n, -d, soft)
-    colour = colour + weight * jnp.where(hit.found, local, p.background[:, None])
-    if not s.needs_secondary_rays:
-        return o, d, origin, jnp.zeros_like(weight), colour
-    idx = jnp.maximum(hit.index, 0)
-    alive = hit.found & jnp.asarray(s.mask(MIRROR, GLASS))[idx]
-    glass = jnp.asarray(s.mask(GLASS))[idx]
-    weight = jnp.where(alive, weight * jnp.where(glass, p.kt[idx], 1), 0)
-    d = normalize(next_direction(s, p, idx, d, n, entering))
-    return hit.point, d, hit.index, weight, colour
+    o: Float[Array, "3 p"]
+    d: Float[Array, "3 p"]
+    origin: Int[Array, " p"]  # sphere the ray leaves (−1: the eye)
+    weight: Float[Array, " p"]  # product of kt so far; 0 once the chain has ended
+    colour: Float[Array, "3 p"]
+    level: Int[Array, " p"]  # this segment's index in the chain (0: primary)
 
 
-def trace(
+def start_rays(o, d) -> Rays:
+    p = o.shape[1:]
+    return Rays(o, d, jnp.full(p, -1, jnp.int32), jnp.ones(p, o.dtype), jnp.zeros_like(o), jnp.zeros(p, jnp.int32))
+
+
+def segment(
     s: Structure,
     p: Params,
-    o: Float[Array, "3 p"],
-    d: Float[Array, "3 p"],
+    m: Material,
+    rays: Rays,
     depth: int,
-    toggles: tuple[Int[Array, " p"], Int[Array, " p"]] | None = None,
-    footprint: "edges.Footprint | None" = None,
-) -> Float[Array, "3 p"]:
+    toggles=None,
+    diff: "edges.Differentials | None" = None,
+    width: float = 0.0,
+):
+    """One segment of the chain for every ray: hit, local light, the next ray.
+
+    With `diff` (the rays' change per sample step) the nearest shadow edge of each hit
+    is box-filtered over `width` steps and the differentials follow the rays; `toggles`
+    (exclude, force) alter this segment's hit (silhouette mode, `spheres.Hit`).
+    Returns the next rays, their differentials (or None) and this segment's hit.
+    """
+    o, d = rays.o, rays.d
+    hit = spheres.Hit(o, d, p.centers, p.radii, rays.origin, m.tmin, *(toggles or (None, None)))
+    entering = hit.entering
+    n = jnp.where(entering, hit.normal_out, -hit.normal_out)
+    moves = None if diff is None else edges.hit_motion(hit, o, d, diff)
+    soft = None if moves is None else (moves[0], moves[1], width)
+    local = shade_hit(s, p, m, hit, n, -d, soft)
+    colour = rays.colour + rays.weight * jnp.where(hit.found, local, p.background[:, None])
+    if not s.needs_secondary_rays:
+        return rays._replace(weight=jnp.zeros_like(rays.weight), colour=colour), None, hit
+    idx = jnp.maximum(hit.index, 0)
+    alive = hit.found & jnp.asarray(s.mask(MIRROR, GLASS))[idx] & (rays.level < depth)
+    glass = jnp.asarray(s.mask(GLASS))[idx]
+    weight = jnp.where(alive, rays.weight * jnp.where(glass, p.kt[idx], 1), 0)
+
+    def turn(d, n):
+        return normalize(next_direction(s, p, idx, d, n, entering))
+
+    new_d = turn(d, n)
+    new_diff = None
+    if diff is not None:
+        # differentials of the next ray: ∂o' = ∂P, ∂d' through the reflection/refraction
+        # with ∂N = ±∂P/r (the facing normal of a sphere moves with the hit point)
+        sign = jnp.where(entering, 1, -1).astype(o.dtype) / p.radii[idx]
+        outs = [jax.jvp(turn, (d, n), (dd, sign * dp))[1] for dd, dp in ((diff.dx, moves[0]), (diff.dy, moves[1]))]
+        new_diff = edges.Differentials(moves[0], outs[0], moves[1], outs[1])
+    nxt = Rays(hit.point, new_d, hit.index, weight, colour, rays.level + 1)
+    return nxt, new_diff, hit
+
+
+def _chain(s, p, m, rays, depth, further: int, diff=None, width=0.0, toggles=None, watch=None):
+    """The first segment (with toggles), then `further` segments in one `lax.scan` body
+    (compiled once, whatever the depth), each skipped at run time by a `lax.cond` once
+    no ray is alive (both modes of differentiation go through `lax.cond`).
+
+    `watch(rays, diff, hit, best)` → best is folded over the segments (silhouette mode)."""
+    rays2, diff2, hit = segment(s, p, m, rays, depth, toggles, diff, width)
+    best = None if watch is None else watch(rays, diff, hit, None)
+    rays = rays2
+    if further == 0 or not s.needs_secondary_rays:
+        return rays, best
+
+    def body(carry, _):
+        def run(c):
+            r, df, b = c
+            r2, df2, h = segment(s, p, m, r, depth, None, df, width)
+            return r2, df2, (b if watch is None else watch(r, df, h, b))
+
+        return jax.lax.cond(jnp.any(carry[0].weight > 0), run, lambda c: c, carry), None
+
+    (rays, _, best), _ = jax.lax.scan(body, (rays, diff2, best), length=further)
+    return rays, best
+
+
+def trace(s: Structure, p: Params, o: Float[Array, "3 p"], d: Float[Array, "3 p"], depth: int) -> Float[Array, "3 p"]:
     """Colour seen along each ray (unclamped), following the chain for `depth` more segments.
 
-    The segments after the first are one `lax.scan` body (compiled once, whatever the
-    depth) in which a segment runs only if some ray is still alive (a `lax.cond`, which
-    skips the work at run time and differentiates in both modes): on most tiles of
-    most scenes the chain ends after one or two segments.
-    `toggles` = (exclude, force), per ray a sphere index or −1, alter the first
-    segment for the silhouette mode (see `spheres.Hit`); `footprint` (the primary
-    rays' change per pixel) softens the first segment's shadow edges (`edges`).
+    On most scenes most rays end after one or two segments, and a segment whose rays
+    have all ended is skipped at run time.
+    """
+    rays, _ = _chain(s, p, prepare(s, p), start_rays(o, d), depth, depth)
+    return rays.colour
+
+
+#: Pass 2 of the silhouette mode traces only pixels with an edge, gathered into this
+#: fraction of the image (a smaller compiled pass); more edge pixels fall back to all.
+EDGE_SHARE = 0.25
+
+
+def trace_edges(s: Structure, p: Params, o, d, diff: "edges.Differentials", depth: int, width: float) -> Float[Array, "3 p"]:
+    """The silhouette-aware colour of each pixel, clamped.
+
+    Pass 1 traces the chain with ray differentials and soft shadow edges, and finds the
+    one silhouette edge nearest to its ray (in pixels) over all segments: primary,
+    reflected or refracted. Pass 2 traces, for the pixels that have one, both sides of
+    that edge from its segment on, through the centroids of their parts of the pixel
+    (the edge sphere removed on one side, met on the other), and blends them by the
+    box-filtered coverage (see `rtjax.edges`). Pass 2 runs on the edge pixels only,
+    gathered (`EDGE_SHARE` of the pixels; a `lax.cond` takes all pixels when more have
+    edges), so its cost follows the edges' length, not the image's area.
     """
     m = prepare(s, p)
-    state = (
-        o,
-        d,
-        jnp.full(o.shape[1:], -1, jnp.int32),
-        jnp.ones(o.shape[1:], o.dtype),
-        jnp.zeros_like(o),
-    )
-    state = _segment(s, p, m, state, toggles, footprint)
-    if depth == 0 or not s.needs_secondary_rays:
-        return state[4]
-
-    def further(st, _):
-        st = jax.lax.cond(jnp.any(st[3] > 0), lambda x: _segment(s, p, m, x), lambda x: x, st)
-        return st, None
-
-    # One compiled segment, run `depth` times (compile time does not grow with depth).
-    state, _ = jax.lax.scan(further, state, length=depth)
-    return state[4]
-
-
-def trace_tiled(s: Structure, p: Params, o, d, depth: int, tile: int, toggles=None, footprint=None) -> Float[Array, "3 p"]:
-    """`trace` over tiles of `tile` rays, one after another (`lax.map`).
-
-    Tiles keep each segment's arrays small (cache-resident on a CPU) and let a tile
-    whose rays have all ended skip the rest of its chain. Neighbouring pixels tend
-    to end together (a patch of background, an opaque sphere), so image-order tiles work.
-    """
+    watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width)
+    rays, best = _chain(s, p, m, start_rays(o, d), depth, depth, diff, width, watch=watch)
+    plain = jnp.clip(rays.colour, 0, 255)
+    has = best.edge >= 0
     n = o.shape[1]
+
+    def blend(sel):
+        b = jax.tree_util.tree_map(lambda a: a[..., sel], best)
+        side = edges.both_sides(b, p.centers, p.radii, width)
+        r0 = b.rays
+        k = side.edge.shape[0]
+        none = jnp.full((k,), -1, jnp.int32)
+
+        def two(a):
+            return jnp.concatenate([a, a], axis=-1)
+
+        start = Rays(
+            jnp.concatenate([side.o_in, side.o_out], axis=-1),
+            jnp.concatenate([side.d_in, side.d_out], axis=-1),
+            two(r0.origin),
+            two(jnp.where(side.edge >= 0, r0.weight, 0)),
+            two(r0.colour),
+            two(r0.level),
+        )
+        toggles = (jnp.concatenate([none, side.edge]), jnp.concatenate([side.edge, none]))
+        twice = edges.Differentials(*(two(a) for a in b.diff))
+        out, _ = _chain(s, p, m, start, depth, depth, twice, width, toggles)
+        inside, outside = jnp.split(jnp.clip(out.colour, 0, 255), 2, axis=-1)
+        return side.alpha * inside + (1 - side.alpha) * outside
+
+    def gathered(plain):
+        cap = max(1, int(n * EDGE_SHARE))
+        (sel,) = jnp.nonzero(has, size=cap, fill_value=0)
+        valid = jnp.arange(cap) < jnp.sum(has)
+        mixed = blend(sel)
+        return plain.at[:, sel].set(jnp.where(valid, mixed, plain[:, sel]))
+
+    def everywhere(plain):
+        return jnp.where(has, blend(jnp.arange(n)), plain)
+
+    if n * EDGE_SHARE < 64:  # tiny images: one path is enough
+        return everywhere(plain)
+    return jax.lax.cond(jnp.sum(has) <= int(n * EDGE_SHARE), gathered, everywhere, plain)
+
+
+def tiled(fn, tile: int, *arrays):
+    """fn(*arrays) → (3, P), run over tiles of `tile` rays one after another (`lax.map`)
+    when P > tile: bounds memory on large images (the image does not depend on it)."""
+    n = arrays[0].shape[-1]
     if n <= tile:
-        return trace(s, p, o, d, depth, toggles, footprint)
+        return fn(*arrays)
     count = -(-n // tile)
     pad = count * tile - n
 
@@ -172,16 +263,5 @@ def trace_tiled(s: Structure, p: Params, o, d, depth: int, tile: int, toggles=No
         a = jnp.concatenate([a, jnp.repeat(a[..., -1:], pad, axis=-1)], axis=-1) if pad else a
         return jnp.moveaxis(a.reshape(a.shape[:-1] + (count, tile)), -2, 0)
 
-    args = (
-        split(o),
-        split(d),
-        None if toggles is None else tuple(split(t) for t in toggles),
-        None if footprint is None else (split(footprint.dx), split(footprint.dy)),
-    )
-
-    def one(a):
-        fp = None if a[3] is None else edges.Footprint(a[3][0], a[3][1], footprint.width)
-        return trace(s, p, a[0], a[1], depth, a[2], fp)
-
-    out = jax.lax.map(one, args)
+    out = jax.lax.map(lambda a: fn(*a), jax.tree_util.tree_map(split, arrays))
     return jnp.moveaxis(out, 0, -2).reshape(3, count * tile)[:, :n]
