@@ -101,12 +101,14 @@ def hit_motion(hit: spheres.Hit, o, d, diff: Differentials):
     """How the hit point moves per sample step: ∂P = ∂o + t·∂d + ∂t·d on the surface,
     ∂t = −N·(∂o + t·∂d)/(N·d). At grazing incidence the motion is unbounded; |N·d| is
     floored at 0.05 there."""
-    nd = dot(hit.normal_out, d)
+    sg = jax.lax.stop_gradient  # a scale of edge distances: no derivative needed (see trace.segment)
+    normal, t, d = sg(hit.normal_out), sg(hit.t), sg(d)
+    nd = dot(normal, d)
     nd = jnp.where(nd < 0, jnp.minimum(nd, -0.05), jnp.maximum(nd, 0.05))
 
     def move(do, dd):
-        v = do + hit.t * dd
-        return v - dot(hit.normal_out, v) / nd * d
+        v = do + t * dd
+        return v - dot(normal, v) / nd * d
 
     return move(diff.ox, diff.dx), move(diff.oy, diff.dy)
 

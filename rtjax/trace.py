@@ -145,21 +145,27 @@ def segment(
     new_diff = None
     if diff is not None:
         # differentials of the next ray: ∂o' = ∂P, ∂d' through the reflection/refraction
-        # with ∂N = ±∂P/r (the facing normal of a sphere moves with the hit point)
-        sign = jnp.where(entering, 1, -1).astype(o.dtype) / p.radii[idx]
-        outs = [jax.jvp(turn, (d, n), (dd, sign * dp))[1] for dd, dp in ((diff.dx, moves[0]), (diff.dy, moves[1]))]
-        new_diff = edges.Differentials(moves[0], outs[0], moves[1], outs[1])
+        # with ∂N = ±∂P/r (the facing normal of a sphere moves with the hit point). They
+        # scale edge distances (δ = (|l| − r)/rate), whose derivative at an edge, where
+        # |l| = r, does not depend on the rate: so they carry no derivative themselves.
+        sg = jax.lax.stop_gradient
+        sign = jnp.where(entering, 1, -1).astype(o.dtype) / sg(p.radii)[idx]
+        outs = [jax.jvp(turn, (sg(d), sg(n)), (dd, sign * dp))[1] for dd, dp in ((diff.dx, moves[0]), (diff.dy, moves[1]))]
+        new_diff = edges.Differentials(*sg((moves[0], outs[0], moves[1], outs[1])))
     nxt = Rays(hit.point, new_d, hit.index, weight, colour, rays.level + 1)
     return nxt, new_diff, hit
 
 
-def _chain(s, p, m, rays, depth, further: int, diff=None, width=0.0, toggles=None, watch=None):
+def _chain(s, p, m, rays, depth, further: int, diff=None, width=0.0, toggles=None, watch=None, first_only=False):
     """The first segment (with toggles), then `further` segments in one `lax.scan` body
     (compiled once, whatever the depth), each skipped at run time by a `lax.cond` once
     no ray is alive (both modes of differentiation go through `lax.cond`).
 
-    `watch(rays, diff, hit, best)` → best is folded over the segments (silhouette mode)."""
+    `watch(rays, diff, hit, best)` → best is folded over the segments (silhouette mode);
+    `first_only`: differentials (soft shadow edges) in the first segment only."""
     rays2, diff2, hit = segment(s, p, m, rays, depth, toggles, diff, width)
+    if first_only:
+        diff2 = None
     best = None if watch is None else watch(rays, diff, hit, None)
     rays = rays2
     if further == 0 or not s.needs_secondary_rays:
@@ -187,9 +193,11 @@ def trace(s: Structure, p: Params, o: Float[Array, "3 p"], d: Float[Array, "3 p"
     return rays.colour
 
 
-#: Pass 2 of the silhouette mode traces only pixels with an edge, gathered into this
-#: fraction of the image (a smaller compiled pass); more edge pixels fall back to all.
-EDGE_SHARE = 0.25
+def edge_capacity(n: int) -> int:
+    """How many pixels pass 2 of the silhouette mode traces: edge pixels are a few per
+    cent of a 400-pixel-wide image and grow like its perimeter, so a quarter of the
+    pixels (at least 4096) covers them; beyond, the surplus keeps its plain colour."""
+    return min(n, max(4096, n // 4))
 
 
 def trace_edges(s: Structure, p: Params, o, d, diff: "edges.Differentials", depth: int, width: float) -> Float[Array, "3 p"]:
@@ -197,57 +205,36 @@ def trace_edges(s: Structure, p: Params, o, d, diff: "edges.Differentials", dept
 
     Pass 1 traces the chain with ray differentials and soft shadow edges, and finds the
     one silhouette edge nearest to its ray (in pixels) over all segments: primary,
-    reflected or refracted. Pass 2 traces, for the pixels that have one, both sides of
-    that edge from its segment on, through the centroids of their parts of the pixel
-    (the edge sphere removed on one side, met on the other), and blends them by the
-    box-filtered coverage (see `rtjax.edges`). Pass 2 runs on the edge pixels only,
-    gathered (`EDGE_SHARE` of the pixels; a `lax.cond` takes all pixels when more have
-    edges), so its cost follows the edges' length, not the image's area.
+    reflected or refracted. Pass 2 traces, for the pixels that have one (gathered, up to
+    `edge_capacity`), both sides of that edge from its segment on, through the
+    centroids of their parts of the pixel (the edge sphere removed on one side, met on
+    the other), and blends them by the box-filtered coverage (see `rtjax.edges`): its
+    cost follows the edges' length, not the image's area.
     """
     m = prepare(s, p)
     watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width)
     rays, best = _chain(s, p, m, start_rays(o, d), depth, depth, diff, width, watch=watch)
     plain = jnp.clip(rays.colour, 0, 255)
-    has = best.edge >= 0
     n = o.shape[1]
+    cap = edge_capacity(n)
+    has = best.edge >= 0
+    (sel,) = jnp.nonzero(has, size=cap, fill_value=0)
+    valid = jnp.arange(cap) < jnp.sum(has)
+    b = jax.tree_util.tree_map(lambda a: a[..., sel], best)
+    side = edges.both_sides(b, p.centers, p.radii, width)
+    r0 = b.rays
 
-    def blend(sel):
-        b = jax.tree_util.tree_map(lambda a: a[..., sel], best)
-        side = edges.both_sides(b, p.centers, p.radii, width)
-        r0 = b.rays
-        k = side.edge.shape[0]
-        none = jnp.full((k,), -1, jnp.int32)
+    def two(a, b=None):
+        return jnp.concatenate([a, a if b is None else b], axis=-1)
 
-        def two(a):
-            return jnp.concatenate([a, a], axis=-1)
-
-        start = Rays(
-            jnp.concatenate([side.o_in, side.o_out], axis=-1),
-            jnp.concatenate([side.d_in, side.d_out], axis=-1),
-            two(r0.origin),
-            two(jnp.where(side.edge >= 0, r0.weight, 0)),
-            two(r0.colour),
-            two(r0.level),
-        )
-        toggles = (jnp.concatenate([none, side.edge]), jnp.concatenate([side.edge, none]))
-        twice = edges.Differentials(*(two(a) for a in b.diff))
-        out, _ = _chain(s, p, m, start, depth, depth, twice, width, toggles)
-        inside, outside = jnp.split(jnp.clip(out.colour, 0, 255), 2, axis=-1)
-        return side.alpha * inside + (1 - side.alpha) * outside
-
-    def gathered(plain):
-        cap = max(1, int(n * EDGE_SHARE))
-        (sel,) = jnp.nonzero(has, size=cap, fill_value=0)
-        valid = jnp.arange(cap) < jnp.sum(has)
-        mixed = blend(sel)
-        return plain.at[:, sel].set(jnp.where(valid, mixed, plain[:, sel]))
-
-    def everywhere(plain):
-        return jnp.where(has, blend(jnp.arange(n)), plain)
-
-    if n * EDGE_SHARE < 64:  # tiny images: one path is enough
-        return everywhere(plain)
-    return jax.lax.cond(jnp.sum(has) <= int(n * EDGE_SHARE), gathered, everywhere, plain)
+    start = Rays(two(side.o_in, side.o_out), two(side.d_in, side.d_out), two(r0.origin),
+                 two(jnp.where(valid, r0.weight, 0)), two(r0.colour), two(r0.level))
+    none = jnp.full((cap,), -1, jnp.int32)
+    twice = edges.Differentials(*(two(a) for a in b.diff))
+    out, _ = _chain(s, p, m, start, depth, depth, twice, width, (two(none, side.edge), two(side.edge, none)), first_only=True)
+    inside, outside = jnp.split(jnp.clip(out.colour, 0, 255), 2, axis=-1)
+    mixed = side.alpha * inside + (1 - side.alpha) * outside
+    return plain.at[:, sel].set(jnp.where(valid, mixed, plain[:, sel]))
 
 
 def tiled(fn, tile: int, *arrays):
