@@ -197,7 +197,12 @@ class EdgeWatch:
     def __init__(self, centers, radii, tmin, width: float):
         self.centers, self.radii, self.tmin, self.width = centers, radii, tmin, width
 
-    def __call__(self, rays, diff: Differentials, hit: spheres.Hit, best: Best | None) -> Best:
+    def empty(self, rays, diff: Differentials) -> Best:
+        """No edge found yet (the fold's start)."""
+        n = rays.weight.shape
+        return Best(jnp.full(n, jnp.inf, rays.o.dtype), jnp.full(n, -1, jnp.int32), jnp.zeros(n, bool), rays, diff)
+
+    def __call__(self, rays, diff: Differentials, hit: spheres.Hit, best: Best) -> Best:
         n = self.centers.shape[0]
         delta, _, _, t, outside = _all_spheres(rays.o, rays.d, *diff, self.centers, self.radii)
         k = jnp.arange(n)[:, None]
@@ -208,8 +213,6 @@ class EdgeWatch:
         score = jnp.where(ok & (jnp.abs(delta) < self.width), jnp.abs(delta), jnp.inf)
         edge = _nearest(score)
         here = Best(jnp.min(score, axis=0), edge, hit.index == edge, rays, diff)
-        if best is None:
-            return here
         better = here.score < best.score
         return jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), here, best)
 

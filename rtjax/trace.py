@@ -156,30 +156,30 @@ def segment(
     return nxt, new_diff, hit
 
 
-def _chain(s, p, m, rays, depth, further: int, diff=None, width=0.0, toggles=None, watch=None, first_only=False):
-    """The first segment (with toggles), then `further` segments in one `lax.scan` body
-    (compiled once, whatever the depth), each skipped at run time by a `lax.cond` once
-    no ray is alive (both modes of differentiation go through `lax.cond`).
+def _chain(s, p, m, rays, depth, diff=None, width=0.0, toggles=None, watch=None):
+    """Segments until `rays.level` passes `depth`: one `lax.scan` body (compiled once,
+    whatever the depth), each segment skipped at run time by a `lax.cond` once no ray is
+    alive (both modes of differentiation go through `lax.cond`). `toggles` alter the
+    first segment only.
 
-    `watch(rays, diff, hit, best)` → best is folded over the segments (silhouette mode);
-    `first_only`: differentials (soft shadow edges) in the first segment only."""
-    rays2, diff2, hit = segment(s, p, m, rays, depth, toggles, diff, width)
-    if first_only:
-        diff2 = None
-    best = None if watch is None else watch(rays, diff, hit, None)
-    rays = rays2
-    if further == 0 or not s.needs_secondary_rays:
-        return rays, best
+    `watch(rays, diff, hit, best)` → best is folded over the segments (silhouette mode)."""
+    if not s.needs_secondary_rays:
+        rays2, _, hit = segment(s, p, m, rays, depth, toggles, diff, width)
+        return rays2, None if watch is None else watch(rays, diff, hit, watch.empty(rays, diff))
+    if toggles is None:
+        toggles = (jnp.full(rays.weight.shape, -1, jnp.int32),) * 2
+    best = None if watch is None else watch.empty(rays, diff)
 
     def body(carry, _):
         def run(c):
-            r, df, b = c
-            r2, df2, h = segment(s, p, m, r, depth, None, df, width)
-            return r2, df2, (b if watch is None else watch(r, df, h, b))
+            r, df, tg, b = c
+            r2, df2, h = segment(s, p, m, r, depth, tg, df, width)
+            off = jnp.full_like(tg[0], -1)
+            return r2, df2, (off, off), (b if watch is None else watch(r, df, h, b))
 
         return jax.lax.cond(jnp.any(carry[0].weight > 0), run, lambda c: c, carry), None
 
-    (rays, _, best), _ = jax.lax.scan(body, (rays, diff2, best), length=further)
+    (rays, _, _, best), _ = jax.lax.scan(body, (rays, diff, toggles, best), length=depth + 1)
     return rays, best
 
 
@@ -189,7 +189,7 @@ def trace(s: Structure, p: Params, o: Float[Array, "3 p"], d: Float[Array, "3 p"
     On most scenes most rays end after one or two segments, and a segment whose rays
     have all ended is skipped at run time.
     """
-    rays, _ = _chain(s, p, prepare(s, p), start_rays(o, d), depth, depth)
+    rays, _ = _chain(s, p, prepare(s, p), start_rays(o, d), depth)
     return rays.colour
 
 
@@ -213,7 +213,7 @@ def trace_edges(s: Structure, p: Params, o, d, diff: "edges.Differentials", dept
     """
     m = prepare(s, p)
     watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width)
-    rays, best = _chain(s, p, m, start_rays(o, d), depth, depth, diff, width, watch=watch)
+    rays, best = _chain(s, p, m, start_rays(o, d), depth, diff, width, watch=watch)
     plain = jnp.clip(rays.colour, 0, 255)
     n = o.shape[1]
     cap = edge_capacity(n)
@@ -231,7 +231,7 @@ def trace_edges(s: Structure, p: Params, o, d, diff: "edges.Differentials", dept
                  two(jnp.where(valid, r0.weight, 0)), two(r0.colour), two(r0.level))
     none = jnp.full((cap,), -1, jnp.int32)
     twice = edges.Differentials(*(two(a) for a in b.diff))
-    out, _ = _chain(s, p, m, start, depth, depth, twice, width, (two(none, side.edge), two(side.edge, none)), first_only=True)
+    out, _ = _chain(s, p, m, start, depth, twice, width, (two(none, side.edge), two(side.edge, none)))
     inside, outside = jnp.split(jnp.clip(out.colour, 0, 255), 2, axis=-1)
     mixed = side.alpha * inside + (1 - side.alpha) * outside
     return plain.at[:, sel].set(jnp.where(valid, mixed, plain[:, sel]))
