@@ -41,32 +41,47 @@ def subpixel_offsets(spp: int, dtype=jnp.float32) -> Float[Array, "k 2"]:
     return jnp.asarray(np.stack([sx.ravel(), sy.ravel()], -1), dtype)
 
 
-def primary_rays(
-    eye: Float[Array, "3"],
-    refp: Float[Array, "3"],
-    vang: Float[Array, "2"],
+def rays_through(
+    eye: Float[Array, " 3"],
+    refp: Float[Array, " 3"],
+    vang: Float[Array, " 2"],
     width: int,
     height: int,
-    offset: Float[Array, "2"],
+    xy: Float[Array, "2 k"],
 ):
-    """Origins and unit directions (3, P) of one ray per pixel, row-major (P = H·W).
+    """Origins and unit directions (3, K) of rays through image positions `xy`.
 
-    Pixel (i, j) at sub-pixel `offset` samples the screen point
-    ((i + ox)/W·2 − 1, 1 − (j + oy)/H·2) in units of the half extents R·tan(ha/2),
-    R·tan(va/2). The direction does not depend on R, so R never appears.
+    xy is in pixels, x across from the left edge, y down from the top edge, so pixel
+    (i, j)'s centre is (i + ½, j + ½): it samples the screen point
+    (x/W·2 − 1, 1 − y/H·2) in units of the half extents R·tan(ha/2), R·tan(va/2).
+    The direction does not depend on R, so R never appears.
     """
-    dtype = eye.dtype
     w, u, v = basis(eye, refp)
     half = jnp.tan(jnp.deg2rad(vang) / 2)
-    i = jnp.arange(width, dtype=dtype)
-    j = jnp.arange(height, dtype=dtype)
-    x = (i + offset[0]) / width * 2 - 1
-    y = 1 - (j + offset[1]) / height * 2
-    sx = u[:, None, None] * (x * half[0])[None, None, :]
-    sy = v[:, None, None] * (y * half[1])[None, :, None]
-    d = normalize(w[:, None, None] + sx + sy).reshape(3, -1)
-    o = jnp.broadcast_to(eye[:, None], d.shape)
-    return o, d
+    sx = (xy[0] / width * 2 - 1) * half[0]
+    sy = (1 - xy[1] / height * 2) * half[1]
+    d = normalize(w[:, None] + u[:, None] * sx + v[:, None] * sy)
+    return jnp.broadcast_to(eye[:, None], d.shape), d
+
+
+def pixel_grid(width: int, height: int, offset: Float[Array, " 2"]) -> Float[Array, "2 p"]:
+    """Image positions of every pixel at sub-pixel `offset`, row-major (P = H·W)."""
+    i = jnp.arange(width, dtype=offset.dtype) + offset[0]
+    j = jnp.arange(height, dtype=offset.dtype) + offset[1]
+    return jnp.stack([jnp.broadcast_to(i[None, :], (height, width)), jnp.broadcast_to(j[:, None], (height, width))]).reshape(2, -1)
+
+
+def primary_rays(
+    eye: Float[Array, " 3"],
+    refp: Float[Array, " 3"],
+    vang: Float[Array, " 2"],
+    width: int,
+    height: int,
+    offset: Float[Array, " 2"],
+):
+    """Origins and unit directions (3, P) of one ray per pixel at sub-pixel `offset`,
+    row-major (P = H·W): pixel (i, j) samples (i + ox, j + oy) (see `rays_through`)."""
+    return rays_through(eye, refp, vang, width, height, pixel_grid(width, height, offset))
 
 
 def pixel_angle(vang: Float[Array, "2"], width: int) -> Float[Array, ""]:

@@ -154,7 +154,7 @@ def _all_spheres(o, d, ox, dx, oy, dy, centers, radii):
 
 def _nearest(score):
     """Per ray, the sphere of smallest finite score, or −1."""
-    return jnp.where(jnp.isfinite(jnp.min(score, axis=0)), jnp.argmin(score, axis=0), -1)
+    return jnp.where(jnp.isfinite(jnp.min(score, axis=0)), jnp.argmin(score, axis=0), -1).astype(jnp.int32)
 
 
 def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, dpx, dpy, width: float):

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .camera import primary_rays, subpixel_offsets
+from .camera import pixel_grid, rays_through, subpixel_offsets
 from .edges import Differentials
 from .errors import RtjaxError
 from .scene import Params, Scene, Structure
@@ -88,10 +88,7 @@ def _render(params: Params, structure: Structure, depth: int, spp: int, tile: in
     s, p = structure, params
 
     def sample(offset):
-        if edges > 0:
-            return _edge_aware_sample(s, p, offset, depth, spp, tile, edges)
-        o, d = primary_rays(p.eye, p.refp, p.vang, s.width, s.height, offset)
-        return jnp.clip(tiled(lambda o, d: trace(s, p, o, d, depth), tile, o, d), 0, 255)
+        return colours_at(s, p, pixel_grid(s.width, s.height, offset), jnp.asarray(1 / spp, offset.dtype), depth, tile, edges)
 
     offsets = subpixel_offsets(spp, p.eye.dtype)
     if spp == 1:
@@ -102,19 +99,56 @@ def _render(params: Params, structure: Structure, depth: int, spp: int, tile: in
     return image.reshape(3, s.height, s.width).transpose(1, 2, 0)
 
 
-def _edge_aware_sample(s: Structure, p: Params, offset, depth: int, spp: int, tile: int, width: float):
-    """One sample per pixel with its nearest silhouette and shadow edges box-filtered."""
+def colours_at(s: Structure, p: Params, xy, step, depth: int, tile: int, edges: float):
+    """Clamped colours (3, K) seen through image positions xy (2, K) (pixels of the
+    scene's image). In the silhouette mode, `step` is the sample spacing in pixels: the
+    box over which edges are filtered is `edges`·`step` pixels wide."""
+    if edges == 0:
+        o, d = rays_through(p.eye, p.refp, p.vang, s.width, s.height, xy)
+        return jnp.clip(tiled(lambda o, d: trace(s, p, o, d, depth), tile, o, d), 0, 255)
 
-    def directions(off):
-        return primary_rays(p.eye, p.refp, p.vang, s.width, s.height, off)[1]
+    def directions(xy):
+        return rays_through(p.eye, p.refp, p.vang, s.width, s.height, xy)[1]
 
-    step, zero = jnp.asarray(1 / spp, offset.dtype), jnp.zeros((), offset.dtype)
-    d, dx = jax.jvp(directions, (offset,), (jnp.stack([step, zero]),))  # the rays' change per sample step
-    _, dy = jax.jvp(directions, (offset,), (jnp.stack([zero, step]),))
+    zero = jnp.zeros_like(step)
+    d, dx = jax.jvp(directions, (xy,), (jnp.broadcast_to(jnp.stack([step, zero])[:, None], xy.shape),))
+    _, dy = jax.jvp(directions, (xy,), (jnp.broadcast_to(jnp.stack([zero, step])[:, None], xy.shape),))
     o = jnp.broadcast_to(p.eye[:, None], d.shape)
     still = jnp.zeros_like(d)  # all primary rays leave the eye
 
     def run(o, d, ox, dx, oy, dy):
-        return trace_edges(s, p, o, d, Differentials(ox, dx, oy, dy), depth, width)
+        return trace_edges(s, p, o, d, Differentials(ox, dx, oy, dy), depth, edges)
 
     return tiled(run, tile, o, d, still, dx, still, dy)
+
+
+def render_samples(
+    scene: Scene,
+    xy,
+    *,
+    step: float = 1.0,
+    depth: int | None = None,
+    edges: float = 0.0,
+    dtype=None,
+    tile: int | None = None,
+) -> Float[Array, "k 3"]:
+    """Colours (K, 3) in 0..255 seen through K image positions `xy` (K, 2), in pixels of
+    the scene's image ((i + ½, j + ½) is pixel (i, j)'s centre).
+
+    A render of any subset or lattice of the image: fitting uses it to render a coarse
+    grid and then a band of pixels around edges with one compiled function (K fixed,
+    positions and `step` traced). `step` is the spacing the samples stand for, in
+    pixels: with `edges`, edges are box-filtered over `edges`·`step` pixels.
+    """
+    dtype = resolve_dtype(scene, dtype)
+    tile = default_tile() if tile is None else int(tile)
+    xy = jnp.asarray(xy, dtype)
+    if xy.ndim != 2 or xy.shape[1] != 2:
+        raise RtjaxError(f"xy must have shape (K, 2), not {xy.shape}")
+    depth = resolve_depth(scene.structure, depth)
+    return _render_samples(scene.params.astype(dtype), xy.T, jnp.asarray(step, dtype), scene.structure, depth, tile, float(edges))
+
+
+@functools.partial(jax.jit, static_argnames=("structure", "depth", "tile", "edges"))
+def _render_samples(params: Params, xy, step, structure: Structure, depth: int, tile: int, edges: float):
+    return colours_at(structure, params, xy, step, depth, tile, edges).T

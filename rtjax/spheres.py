@@ -72,7 +72,7 @@ def nearest(o, d, centers, radii, origin: Int[Array, " p"], tmin, exclude=None):
     # Far roots carry a minus sign (both roots are > tmin > 0), so one argmin over |t|
     # and one gather answer all three questions: the form XLA's CPU backend runs fastest.
     signed = jnp.where(near_ok, near, jnp.where(far_ok, -far, jnp.inf))
-    idx = jnp.argmin(jnp.abs(signed), axis=0)
+    idx = jnp.argmin(jnp.abs(signed), axis=0).astype(jnp.int32)
     t = jnp.take_along_axis(signed, idx[None], axis=0)[0]
     return jnp.abs(t), idx, t < 0
 
