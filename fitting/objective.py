@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -70,7 +71,7 @@ def downsample(image: np.ndarray, height: int, width: int) -> np.ndarray:
     """Area-average an (H, W, C) image to (height, width, C)."""
     a = area_matrix(height, image.shape[0])
     b = area_matrix(width, image.shape[1])
-    return np.einsum("ih,hwc,jw->ijc", a, image, b)
+    return np.einsum("jw,iwc->ijc", b, np.einsum("ih,hwc->iwc", a, image))  # two small products, not one 5-index sum
 
 
 def schedule_widths(width: int, levels: int | Sequence[int] | None) -> list[int]:
@@ -119,32 +120,94 @@ def apply_nuisance(image, nuisance: dict):
     return 255 * jnp.clip(x, 0, 1)
 
 
+class Samples(NamedTuple):
+    """One pyramid level: K image positions (pixels of the full image), the spacing they
+    stand for, and the target (and mask weight) there. K is the same on every level, so
+    one compiled residual function serves them all."""
+
+    xy: jnp.ndarray  # (K, 2)
+    step: jnp.ndarray  # ()
+    target: jnp.ndarray  # (K, 3)
+    weight: jnp.ndarray  # (K, 1)
+    width: jnp.ndarray  # () edge width in this level's pixels
+
+
+def level_grid(width: int, height: int, w: int) -> tuple[int, np.ndarray, float]:
+    """A level of `w` pixels across: its height, the positions of its pixel centres in
+    full-image pixels (h·w, 2), and its pixel size in full-image pixels."""
+    h = max(1, int(round(height * w / width)))
+    fx, fy = width / w, height / h
+    i, j = np.meshgrid(np.arange(w), np.arange(h), indexing="xy")
+    xy = np.stack([(i.ravel() + 0.5) * fx, (j.ravel() + 0.5) * fy], -1)
+    return h, xy, fx
+
+
+def edge_band(image: np.ndarray, threshold: float = 6.0, grow: int = 2) -> np.ndarray:
+    """Pixels (H, W) near a colour edge of `image`: the largest difference to a
+    neighbour exceeds `threshold` levels, grown by `grow` pixels."""
+    img = image.astype(np.float64)
+    contrast = np.zeros(img.shape[:2])
+    for axis in (0, 1):
+        diff = np.abs(np.diff(img, axis=axis)).max(axis=2)
+        pad = [(0, 0), (0, 0)]
+        pad[axis] = (1, 0)
+        contrast = np.maximum(contrast, np.pad(diff, pad))
+        pad[axis] = (0, 1)
+        contrast = np.maximum(contrast, np.pad(diff, pad))
+    band = contrast > threshold
+    for _ in range(grow):
+        grown = band.copy()
+        grown[1:] |= band[:-1]
+        grown[:-1] |= band[1:]
+        grown[:, 1:] |= band[:, :-1]
+        grown[:, :-1] |= band[:, 1:]
+        band = grown
+    return band
+
+
+def make_levels(target: np.ndarray, weight: np.ndarray, widths: Sequence[int], edges: Sequence[float], dtype, seed: int = 0) -> list[Samples]:
+    """The coarse-to-fine pyramid as `Samples` of one size K (the coarsest level's pixel
+    count): the coarsest level is its whole grid of area-averaged pixels; finer levels
+    take K of their pixels, those near the target's edges first (where positions are
+    decided), then a random spread of the rest."""
+    height, width = target.shape[:2]
+    rng = np.random.default_rng(seed)
+    levels = []
+    k = None
+    for w, e in zip(widths, edges):
+        h, xy, step = level_grid(width, height, w)
+        small = target if (h, w) == (height, width) else downsample(target, h, w)
+        wsmall = weight if (h, w) == (height, width) else downsample(weight, h, w)
+        t, wt = small.reshape(-1, 3), wsmall.reshape(-1, 1)
+        if k is None:
+            k = len(xy)
+            pick = np.arange(k)
+        else:
+            band = np.flatnonzero(edge_band(small).ravel())
+            rest = np.setdiff1d(np.arange(len(xy)), band)
+            take = min(len(band), (3 * k) // 4)
+            pick = np.concatenate([rng.choice(band, take, replace=False), rng.choice(rest, k - take, replace=False)])
+        levels.append(Samples(*(jnp.asarray(a, dtype) for a in (xy[pick], step, t[pick], wt[pick], e))))
+    return levels
+
+
 @dataclasses.dataclass
 class Objective:
-    """The residual function of one pyramid level."""
+    """The residual function r(y, samples): one for every level (samples are arguments)."""
 
     selection: Selection
-    scene: rtjax.Scene  # at this level's size
-    target: jnp.ndarray
-    weight: jnp.ndarray  # (H, W, 1): the mask
-    edges: float
     depth: int | None
     loss: str
     loss_scale: float
-    nuisance: tuple[str, ...]
 
-    def model(self, y: dict):
-        p = self.selection.params(y["scene"])
-        image = rtjax.render(rtjax.Scene(self.scene.structure, p), depth=self.depth, edges=self.edges)
-        return apply_nuisance(image, y.get("nuisance", {}))
+    def model(self, y: dict, samples: Samples):
+        scene = rtjax.Scene(self.selection.scene.structure, self.selection.params(y["scene"]))
+        colours = rtjax.render_samples(scene, samples.xy, step=samples.step, depth=self.depth, edges=samples.width)
+        return apply_nuisance(colours, y.get("nuisance", {}))
 
-    def residuals(self, y: dict, args=None):
-        r = (self.model(y) - self.target) * self.weight / 255
+    def residuals(self, y: dict, samples: Samples):
+        r = (self.model(y, samples) - samples.target) * samples.weight / 255
         return robust(r, self.loss, self.loss_scale / 255)
-
-    def loss_value(self, y: dict) -> float:
-        r = self.residuals(y)
-        return float(0.5 * jnp.mean(r * r))
 
 
 def nuisance_y0(names: Sequence[str], dtype) -> dict:

@@ -16,6 +16,7 @@ from collections.abc import Callable, Sequence
 
 import equinox as eqx
 import jax
+import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
@@ -23,16 +24,7 @@ import optimistix as optx
 import rtjax
 
 from .errors import FitError
-from .objective import (
-    LOSSES,
-    Objective,
-    downsample,
-    load_target,
-    match_size,
-    nuisance_y0,
-    prepare_mask,
-    schedule_widths,
-)
+from .objective import LOSSES, Objective, load_target, make_levels, match_size, nuisance_y0, prepare_mask, schedule_widths
 from .select import Selection
 
 SOLVERS = {
@@ -93,14 +85,14 @@ def fit(
     solver: str = "lm",
     max_steps: int = 30,
     levels: int | Sequence[int] | None = None,
-    edges: float = 1.0,
+    edges: float | Sequence[float] = (1.0, 1.0, 0.5),
     depth: int | None = None,
     loss: str = "l2",
     loss_scale: float = 10.0,
     mask=None,
     nuisance: Sequence[str] = (),
-    rtol: float = 1e-6,
-    atol: float = 1e-6,
+    rtol: float = 1e-5,
+    atol: float = 1e-7,
     jac: str | None = None,
     assignment_order: bool = False,
     callback: Callable[[dict], None] | None = None,
@@ -116,12 +108,17 @@ def fit(
     solver: 'lm' (Levenberg–Marquardt, default), 'gn' (Gauss–Newton), 'dogleg' (least
       squares) or 'bfgs' (minimisation of the same loss).
     max_steps: iterations in all, across the coarse-to-fine `levels` (an int: that many
-      levels, halving the width; a list of widths; 1: full size only).
-    edges: edge width of the silhouette-aware render, in pixels of each level.
+      levels, halving the width down to 48 pixels; a list of widths; 1: full size only).
+      Every level renders the same number of samples (the coarsest level's pixel
+      count; finer levels take the pixels near the target's edges and a spread of the
+      rest), so one compiled step serves all levels.
+    edges: edge width of the silhouette-aware render in pixels of each level, one value
+      or one per level (the last value repeats); the default narrows it on the last
+      level, where the target's own edges are sharp.
     loss: 'l2', 'huber' or 'cauchy' (robust, with `loss_scale` in levels).
     nuisance: ('gain', 'gamma') fitted jointly: model = 255·(gain·I/255)^γ.
-    jac: 'fwd' or 'bwd' Jacobians for the least-squares solvers (default: forward mode,
-      reverse when the free parameters outnumber a few hundred).
+    jac: 'fwd' (default: the Jacobian by forward mode, one batched pass per step) or
+      'bwd' (reverse mode, for many free parameters such as texels).
     callback: called after every iteration with that iteration's history row.
     """
     if solver not in SOLVERS:
@@ -133,132 +130,143 @@ def fit(
     t_start = time.perf_counter()
     target = load_target(target, assignment_order=assignment_order)
     full = match_size(scene, target)
-    weight_full = prepare_mask(mask, *target.shape[:2])
     selection = Selection(full, free, spheres)
     dtype = jnp.result_type(full.params.centers)
     y = {"scene": selection.y0()}
     if nuisance:
         y["nuisance"] = nuisance_y0(nuisance, dtype)
     if jac is None:
-        jac = "bwd" if selection.size() > 400 else "fwd"
-    options = {} if solver == "bfgs" else {"jac": jac}
-
+        jac = "bwd" if selection.size() > 200 else "fwd"
     widths = schedule_widths(full.structure.width, levels)
+    widths_e = [float(edges)] * len(widths) if np.ndim(edges) == 0 else [float(e) for e in edges]
+    if not widths_e or min(widths_e) <= 0:
+        raise FitError(f"edge widths must be > 0, not {edges}")
+    widths_e = (widths_e + [widths_e[-1]] * len(widths))[: len(widths)]
+    if len(widths) < len(widths_e) or np.ndim(edges) != 0:
+        widths_e[-1] = float(np.ravel(edges)[-1])  # the last given width is the full-size level's
+    pyramid = make_levels(target, prepare_mask(mask, *target.shape[:2]), widths, widths_e, dtype)
+    objective = Objective(selection, depth, loss, loss_scale)
+    run = _Stepper(objective, SOLVERS[solver](rtol, atol), solver, jac)
+
     history: list[dict] = []
-    best_y, best_loss = y, math.inf
-    steps = 0
-    result = optx.RESULTS.successful
-    times = {"compile_and_run": 0.0}
-    for level, width in enumerate(widths):
+    steps, result = 0, optx.RESULTS.successful
+    best = (y, math.inf)
+    for level, (width, samples) in enumerate(zip(widths, pyramid)):
         final = level == len(widths) - 1
-        lvl_scene = full if width == full.structure.width else full.resized(width)
-        h = lvl_scene.structure.height
-        obj = Objective(
-            selection,
-            lvl_scene,
-            jnp.asarray(downsample(target, h, width) if (h, width) != target.shape[:2] else target, dtype),
-            jnp.asarray(downsample(weight_full, h, width) if (h, width) != target.shape[:2] else weight_full, dtype),
-            edges,
-            depth,
-            loss,
-            loss_scale,
-            tuple(nuisance),
-        )
-        # coarse levels stop early (their optimum is only close to the full-size one)
-        tol = (rtol, atol) if final else (max(rtol, 1e-3), max(atol, 1e-3))
-        budget = max_steps - steps if final else max(1, min(max_steps - steps - 1, (max_steps * 2) // 3 - steps))
-        if budget <= 0:
-            continue
-        y_level, level_result, n, level_best = _run_level(obj, SOLVERS[solver](*tol), y, options, budget, solver, history, steps, width, callback, t_start)
+        # coarse levels get at most half of what is left; the last level the rest
+        budget = max_steps - steps if final else max(1, (max_steps - steps) // 2)
+        best, result, n = run.level(best[0], samples, budget, not final, history, steps, width, callback, t_start)
         steps += n
-        # the best point of this level seeds the next (and is the answer after the last)
-        y = level_best[0]
-        if final:
-            best_y, best_loss = level_best
-            result = level_result
-    fitted = selection.scene_at(best_y["scene"])
+    fitted = selection.scene_at(best[0]["scene"])
     name = _result_name(result)
-    converged = name == "successful"
-    times["total"] = time.perf_counter() - t_start
     return FitResult(
-        scene=rtjax.Scene(scene.structure.replace(width=fitted.structure.width, height=fitted.structure.height), fitted.params),
+        scene=rtjax.Scene(scene.structure.replace(width=full.structure.width, height=full.structure.height), fitted.params),
         start=full,
         selection=selection,
-        y=best_y,
+        y=best[0],
         history=history,
         result=name,
-        message=_message(result) if not converged else "converged",
-        converged=converged,
+        message="converged" if name == "successful" else _message(result),
+        converged=name == "successful",
         steps=steps,
-        nuisance={k: float(jnp.exp(v)) for k, v in best_y.get("nuisance", {}).items()},
-        times=times,
+        nuisance={k: float(jnp.exp(v)) for k, v in best[0].get("nuisance", {}).items()},
+        times={"total": time.perf_counter() - t_start, "first_step": history[0]["seconds"] if history else math.nan},
         solver=solver,
     )
 
 
-def _run_level(obj: Objective, solver, y, options, budget: int, solver_name: str, history, step0: int, width: int, callback, t_start):
-    """Iterate one solver on one pyramid level; returns (y, result, iterations, (best y, best loss))."""
-    tags = frozenset()
-    minimise = solver_name == "bfgs"
+def with_dense_jacobian(fn):
+    """fn(y, args) with a jvp rule in y that builds the whole Jacobian by `jax.jacfwd`
+    (one batched forward pass) and applies it: J·ẏ. optimistix's Gauss–Newton family
+    linearises fn and then evaluates the linear map once per free parameter; with this
+    rule that is a matrix product, and the render's forward-mode pass runs once per step
+    (measured 2.3× faster to run and 2× faster to compile than `jax.linearize` on a
+    render). Reverse mode still works: the rule is linear in ẏ, so JAX transposes it."""
 
-    if minimise:
-        def fn(y, args):
-            r = obj.residuals(y)
-            return 0.5 * jnp.sum(r * r), None
-    else:
-        def fn(y, args):
-            return obj.residuals(y), None
+    @jax.custom_jvp
+    def dense(y, args):
+        return fn(y, args)
 
-    f_struct, aux_struct = jax.eval_shape(lambda: fn(y, None))
+    @dense.defjvp
+    def dense_jvp(primals, tangents):
+        (y, args), (ydot, _) = primals, tangents
+        flat, unravel = jax.flatten_util.ravel_pytree(y)
+        jac, value = jax.jacfwd(lambda v: (fn(unravel(v), args),) * 2, has_aux=True)(flat)
+        step, _ = jax.flatten_util.ravel_pytree(ydot)
+        return value, jnp.tensordot(jac, step, axes=1)
 
-    @eqx.filter_jit
-    def init(y):
-        return solver.init(fn, y, None, options, f_struct, aux_struct, tags)
+    return dense
 
-    @eqx.filter_jit
-    def step(y, state):
-        y, state, _ = solver.step(fn, y, None, options, state, tags)
-        done, result = solver.terminate(fn, y, None, options, state, tags)
-        return y, state, done, result, _loss(y)
 
-    @eqx.filter_jit
-    def _loss(y):
-        r = obj.residuals(y)
-        return 0.5 * jnp.mean(r * r)
+class _Stepper:
+    """The solver's init/step/terminate, jit-compiled once per fit (the pyramid level's
+    samples are arguments), stepped by hand to report and keep the best point."""
 
-    state = init(y)
-    best = (y, float(_loss(y)))
-    result = optx.RESULTS.successful
-    n = 0
-    for n in range(1, budget + 1):
-        t0 = time.perf_counter()
-        y_new, state_new, done, result, loss = step(y, state)
-        loss = float(loss)
-        finite = math.isfinite(loss)
-        if finite:
-            y, state = y_new, state_new
-            if loss < best[1]:
-                best = (y, loss)
-        else:  # a diverging solver: stop, keep the best so far
-            result = optx.RESULTS.nonlinear_divergence
-        row = {
-            "step": step0 + n,
-            "width": width,
-            "loss": loss,
-            "best_loss": best[1],
-            "rmse_levels": math.sqrt(2 * best[1]) * 255 if math.isfinite(best[1]) else math.nan,
-            "seconds": time.perf_counter() - t0,
-            "elapsed": time.perf_counter() - t_start,
-        }
-        history.append(row)
-        if callback is not None:
-            callback(row)
-        if not finite:
-            break
-        if bool(done):
-            break
-    else:
-        result = optx.RESULTS.max_steps_reached
-    if bool(done) is False and n == budget:
-        result = optx.RESULTS.max_steps_reached
-    return y, result, n, best
+    def __init__(self, objective: Objective, solver, name: str, jac: str):
+        residuals = with_dense_jacobian(objective.residuals) if jac == "fwd" else objective.residuals
+        self.options = {"jac": "bwd"} if jac == "bwd" and name != "bfgs" else {}
+        self.solver = solver
+        if name == "bfgs":
+            def fn(y, args):
+                r = residuals(y, args)
+                return 0.5 * jnp.sum(r * r), None
+        else:
+            def fn(y, args):
+                return residuals(y, args), None
+        self.fn = fn
+
+        @eqx.filter_jit
+        def loss(y, args):
+            r = objective.residuals(y, args)
+            return 0.5 * jnp.mean(r * r)
+
+        self.loss = loss
+        self.init = eqx.filter_jit(self._init)
+        self.step = eqx.filter_jit(self._step)
+
+    def _init(self, y, args):
+        f_struct, aux_struct = jax.eval_shape(lambda: self.fn(y, args))
+        return self.solver.init(self.fn, y, args, self.options, f_struct, aux_struct, frozenset())
+
+    def _step(self, y, state, args):
+        y, state, _ = self.solver.step(self.fn, y, args, self.options, state, frozenset())
+        done, result = self.solver.terminate(self.fn, y, args, self.options, state, frozenset())
+        return y, state, done, result, self.loss(y, args)
+
+    def level(self, y, samples, budget: int, coarse: bool, history, step0: int, width: int, callback, t_start):
+        """Up to `budget` iterations on one level; returns ((best y, best loss), result, n).
+
+        A coarse level also stops once its best loss improves by less than 1 % over two
+        iterations: its optimum is only near the full-size one."""
+        state = self.init(y, samples)
+        best = (y, float(self.loss(y, samples)))
+        result, done, n = optx.RESULTS.successful, False, 0
+        stalled = 0
+        for n in range(1, budget + 1):
+            t0 = time.perf_counter()
+            y_new, state_new, done, result, loss = self.step(y, state, samples)
+            loss, done = float(loss), bool(done)
+            if not math.isfinite(loss):  # a diverging solver: stop, keep the best so far
+                result, done = optx.RESULTS.nonlinear_divergence, True
+            else:
+                y, state = y_new, state_new
+                stalled = stalled + 1 if loss > best[1] * 0.99 else 0
+                if loss < best[1]:
+                    best = (y, loss)
+            row = {
+                "step": step0 + n,
+                "width": width,
+                "loss": loss,
+                "best_loss": best[1],
+                "rmse_levels": math.sqrt(2 * best[1]) * 255,
+                "seconds": time.perf_counter() - t0,
+                "elapsed": time.perf_counter() - t_start,
+            }
+            history.append(row)
+            if callback is not None:
+                callback(row)
+            if done or (coarse and stalled >= 2):
+                break
+        if not done and not coarse:
+            result = optx.RESULTS.max_steps_reached
+        return best, result, n

@@ -103,7 +103,7 @@ def colours_at(s: Structure, p: Params, xy, step, depth: int, tile: int, edges: 
     """Clamped colours (3, K) seen through image positions xy (2, K) (pixels of the
     scene's image). In the silhouette mode, `step` is the sample spacing in pixels: the
     box over which edges are filtered is `edges`·`step` pixels wide."""
-    if edges == 0:
+    if isinstance(edges, (int, float)) and edges == 0:
         o, d = rays_through(p.eye, p.refp, p.vang, s.width, s.height, xy)
         return jnp.clip(tiled(lambda o, d: trace(s, p, o, d, depth), tile, o, d), 0, 255)
 
@@ -136,9 +136,9 @@ def render_samples(
     the scene's image ((i + ½, j + ½) is pixel (i, j)'s centre).
 
     A render of any subset or lattice of the image: fitting uses it to render a coarse
-    grid and then a band of pixels around edges with one compiled function (K fixed,
-    positions and `step` traced). `step` is the spacing the samples stand for, in
-    pixels: with `edges`, edges are box-filtered over `edges`·`step` pixels.
+    grid and then a band of pixels around edges with one compiled function (K fixed;
+    positions, `step` and a non-zero `edges` traced). `step` is the spacing the samples
+    stand for, in pixels: with `edges`, edges are box-filtered over `edges`·`step` pixels.
     """
     dtype = resolve_dtype(scene, dtype)
     tile = default_tile() if tile is None else int(tile)
@@ -146,9 +146,11 @@ def render_samples(
     if xy.ndim != 2 or xy.shape[1] != 2:
         raise RtjaxError(f"xy must have shape (K, 2), not {xy.shape}")
     depth = resolve_depth(scene.structure, depth)
-    return _render_samples(scene.params.astype(dtype), xy.T, jnp.asarray(step, dtype), scene.structure, depth, tile, float(edges))
+    aware = not (isinstance(edges, (int, float)) and edges == 0)  # a traced width means the mode is on
+    width = jnp.asarray(edges, dtype)
+    return _render_samples(scene.params.astype(dtype), xy.T, jnp.asarray(step, dtype), width, scene.structure, depth, tile, aware)
 
 
-@functools.partial(jax.jit, static_argnames=("structure", "depth", "tile", "edges"))
-def _render_samples(params: Params, xy, step, structure: Structure, depth: int, tile: int, edges: float):
-    return colours_at(structure, params, xy, step, depth, tile, edges).T
+@functools.partial(jax.jit, static_argnames=("structure", "depth", "tile", "aware"))
+def _render_samples(params: Params, xy, step, width, structure: Structure, depth: int, tile: int, aware: bool):
+    return colours_at(structure, params, xy, step, depth, tile, width if aware else 0).T
