@@ -17,6 +17,7 @@ def _tune_xla_cpu() -> None:
 _tune_xla_cpu()
 
 from .deck import Deck as Deck, Frame as Frame, format_deck as format_deck, load_deck as load_deck, parse_deck as parse_deck, save_deck as save_deck
+from .atomic import atomic_path as atomic_path, atomic_write as atomic_write
 from .camera import image_height as image_height
 from .errors import DeckError as DeckError, ImageError as ImageError, RtjaxError as RtjaxError
 from .images import load_image as load_image, save_image as save_image, to_uint8 as to_uint8

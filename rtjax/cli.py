@@ -90,20 +90,6 @@ def _plan(deck, args) -> list[tuple[object, str]]:
     return plan
 
 
-def _render_options(render, args) -> dict:
-    """Keyword options for `render`; --edges only where the renderer offers that mode."""
-    options = {"depth": args.depth, "spp": args.spp, "dtype": args.dtype}
-    if args.edges > 0:
-        import inspect
-
-        accepted = inspect.signature(render).parameters
-        name = next((n for n in ("edges", "edge_width") if n in accepted), None)
-        if name is None:
-            raise RtjaxError("--edges: this build's renderer has no silhouette-aware mode")
-        options[name] = args.edges
-    return options
-
-
 def cmd_render(args) -> int:
     from .deck import _show, load_deck
 
@@ -118,7 +104,7 @@ def cmd_render(args) -> int:
     from .images import save_image, to_uint8
     from .render import render
 
-    options = _render_options(render, args)
+    options = {"depth": args.depth, "spp": args.spp, "dtype": args.dtype, "edges": args.edges}
     for frame, path in plan:
         try:
             start = time.perf_counter()
@@ -153,6 +139,86 @@ def cmd_render(args) -> int:
     return 0
 
 
+def _int_list(text: str) -> list[int]:
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected whole numbers separated by commas, found {text!r}") from None
+
+
+def _float_list(text: str) -> list[float]:
+    try:
+        values = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected numbers separated by commas, found {text!r}") from None
+    if not values or any(not (0 < v <= 16) for v in values):
+        raise argparse.ArgumentTypeError(f"expected edge widths in (0, 16] pixels, found {text!r}")
+    return values
+
+
+class _Progress:
+    """One line per iteration; on a terminal, a bar that fills as the steps are used."""
+
+    def __init__(self, max_steps: int, quiet: bool):
+        self.max_steps, self.quiet, self.tty = max_steps, quiet, sys.stdout.isatty()
+
+    def __call__(self, row: dict) -> None:
+        if self.quiet:
+            return
+        text = (f"step {row['step']:3d}  {row['width']:4d} px  loss {row['loss']:.4e}  "
+                f"rms {row['rmse_levels']:.3g} levels  {row['seconds']:.2f} s")
+        if self.tty:
+            done = int(30 * row["step"] / self.max_steps)
+            print(f"\r[{'#' * done}{'.' * (30 - done)}] {text}", end="", flush=True)
+        else:
+            print(text, flush=True)
+
+    def close(self) -> None:
+        if self.tty and not self.quiet:
+            print()
+
+
+def cmd_fit(args) -> int:
+    """`rtjax fit`: fit a deck's free parameters to a target image, write the results."""
+    import fitting
+    from fitting.report import save_outputs, table_text
+
+    from .deck import load_deck
+
+    deck = load_deck(args.deck)
+    if not deck.frames:
+        raise DeckError(deck.path, None, "the deck has no rend line: nothing to fit")
+    if not 0 <= args.frame < len(deck.frames):
+        raise RtjaxError(f"--frame {args.frame}: the deck has {len(deck.frames)} frames (0..{len(deck.frames) - 1})")
+    frame = deck.frames[args.frame]
+    out = args.output or os.path.splitext(os.path.basename(args.deck))[0] + "_fitted.dat"
+    outdir, stem = os.path.dirname(out) or ".", os.path.splitext(os.path.basename(out))[0]
+    progress = _Progress(args.max_steps, args.quiet)
+    try:
+        result = fitting.fit(
+            frame.scene,
+            args.target,
+            args.free,
+            spheres=args.spheres,
+            solver=args.solver,
+            max_steps=args.max_steps,
+            levels=args.levels if args.levels is None or len(args.levels) > 1 else args.levels[0],
+            edges=args.edges,
+            loss=args.loss,
+            loss_scale=args.loss_scale,
+            nuisance=args.nuisance.split(",") if args.nuisance else (),
+            mask=args.mask,
+            assignment_order=args.assignment_order,
+            callback=progress,
+        )
+    finally:
+        progress.close()
+    paths = save_outputs(result, outdir, stem, args.deck, args.target, image_name=f"{stem}.sunimg")
+    print(table_text(result))
+    print("wrote " + ", ".join(paths[k] for k in ("deck", "image", "report", "plot")))
+    return 0 if result.converged else 1
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse whose errors are one line on stderr (no usage block), exit code 2."""
 
@@ -182,6 +248,26 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--allow-any-path", action="store_true", help="allow `rend` paths that are absolute or leave OUTDIR")
     r.add_argument("--allow-large", action="store_true", help=f"allow images beyond {MAX_SIDE} pixels a side")
     r.set_defaults(run=cmd_render)
+
+    f = sub.add_parser("fit", help="fit a deck's parameters to a target image",
+                       description="Fit the free parameters of DECK's scene so that it renders like TARGET.")
+    f.add_argument("deck", help="the deck whose scene is the starting point")
+    f.add_argument("target", help="the target image: Sun raster (either byte order) or anything OpenImageIO reads")
+    f.add_argument("--free", default="centers", help="parameter families to fit, e.g. centers,colors,ke (default centers)")
+    f.add_argument("--spheres", type=_int_list, default=None, help="restrict per-sphere families to these spheres, e.g. 0,2,5")
+    f.add_argument("--solver", choices=("lm", "gn", "dogleg", "bfgs"), default="lm", help="solver (default lm: Levenberg-Marquardt)")
+    f.add_argument("-o", "--output", default=None, help="the fitted deck (default DECK_fitted.dat); image, report and plot go beside it")
+    f.add_argument("--max-steps", type=_positive_int, default=30, help="iterations in all (default 30)")
+    f.add_argument("--levels", type=_int_list, default=None, help="coarse-to-fine: a count of levels, or widths such as 100,200,400 (default 3)")
+    f.add_argument("--edges", type=_float_list, default=None, help="edge width per level in pixels, e.g. 1,1,0.02 (default)")
+    f.add_argument("--loss", choices=("l2", "huber", "cauchy"), default="cauchy", help="residual loss (default cauchy: robust)")
+    f.add_argument("--loss-scale", type=float, default=10.0, help="robust loss scale in levels (default 10)")
+    f.add_argument("--nuisance", default="", help="also fit a camera response: gain,gamma")
+    f.add_argument("--mask", default=None, help="an image whose dark pixels are ignored")
+    f.add_argument("--frame", type=int, default=0, help="which rend frame of the deck to fit (default 0)")
+    f.add_argument("--assignment-order", action="store_true", help="the target is a Sun raster file in the assignment's R,G,B order")
+    f.add_argument("--quiet", action="store_true", help="no per-iteration progress")
+    f.set_defaults(run=cmd_fit)
     return parser
 
 

@@ -1,0 +1,115 @@
+"""What a fit leaves behind: the summary table, the JSON report, the convergence plot,
+the fitted deck and the fitted image."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+
+import numpy as np
+
+import rtjax
+
+from .solve import FitResult
+
+
+def _fmt(v) -> str:
+    if isinstance(v, list):
+        return "(" + ", ".join(f"{x:.6g}" for x in v) + ")"
+    return f"{v:.6g}"
+
+
+def table_text(result: FitResult) -> str:
+    """A fixed-width table: parameter, start → fitted, then the solver's result."""
+    rows = result.table()
+    for name, value in result.nuisance.items():
+        rows.append((f"nuisance {name}", 1.0, value))
+    width = max([len(r[0]) for r in rows] + [9])
+    lines = [f"{'parameter':<{width}}  start → fitted"]
+    lines += [f"{name:<{width}}  {_fmt(a)} → {_fmt(b)}" for name, a, b in rows]
+    loss = result.loss
+    lines.append(
+        f"solver {result.solver}: {result.result} ({result.message}) after {result.steps} iterations, "
+        f"{result.times['total']:.1f} s; final RMS residual {math.sqrt(2 * loss) * 255:.3g} levels"
+        if math.isfinite(loss)
+        else f"solver {result.solver}: {result.result} ({result.message})"
+    )
+    return "\n".join(lines)
+
+
+def report_dict(result: FitResult, deck: str | None = None, target: str | None = None) -> dict:
+    """Everything worth keeping about a fit, JSON-ready."""
+    return {
+        "deck": deck,
+        "target": target,
+        "solver": result.solver,
+        "result": result.result,
+        "message": result.message,
+        "converged": result.converged,
+        "iterations": result.steps,
+        "loss": result.loss,
+        "rmse_levels": math.sqrt(2 * result.loss) * 255 if math.isfinite(result.loss) else None,
+        "times": result.times,
+        "free": list(result.selection.families),
+        "parameters": [{"name": n, "start": a, "fitted": b} for n, a, b in result.table()],
+        "nuisance": result.nuisance,
+        "history": result.history,
+    }
+
+
+def write_json(path: str, data: dict) -> None:
+    rtjax.atomic_write(path, (json.dumps(data, indent=2, allow_nan=True) + "\n").encode())
+
+
+def plot_convergence(result: FitResult, path: str) -> None:
+    """Loss per iteration (log scale), the pyramid levels shaded, written atomically as PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    h = result.history
+    fig, ax = plt.subplots(figsize=(6.4, 3.6), dpi=100)
+    if h:
+        steps = [r["step"] for r in h]
+        ax.semilogy(steps, [max(r["loss"], 1e-300) for r in h], "o-", ms=3, label="loss")
+        ax.semilogy(steps, [max(r["best_loss"], 1e-300) for r in h], "-", lw=1, alpha=0.6, label="best so far")
+        widths = [r["width"] for r in h]
+        start = 0
+        for i in range(1, len(h) + 1):
+            if i == len(h) or widths[i] != widths[start]:
+                ax.axvspan(steps[start] - 0.5, steps[i - 1] + 0.5, alpha=0.08 * (1 + (start > 0)), color="C2")
+                ax.text((steps[start] + steps[i - 1]) / 2, 1.0, f"{widths[start]} px", transform=ax.get_xaxis_transform(),
+                        ha="center", va="bottom", fontsize=8)
+                start = i
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("loss (½·mean residual², level/255 units)")
+    ax.set_title(f"{result.solver}: {result.result}", fontsize=10, pad=14)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    with rtjax.atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
+def save_outputs(result: FitResult, outdir: str, stem: str, deck_path: str | None = None, target_path: str | None = None,
+                 image_name: str | None = None) -> dict[str, str]:
+    """Fitted deck, fitted image (Sun raster), JSON report and convergence plot in outdir."""
+    os.makedirs(outdir, exist_ok=True)
+    image_name = image_name or f"{stem}.sunimg"
+    paths = {
+        "deck": os.path.join(outdir, f"{stem}.dat"),
+        "image": os.path.join(outdir, image_name),
+        "report": os.path.join(outdir, f"{stem}.json"),
+        "plot": os.path.join(outdir, f"{stem}_convergence.png"),
+    }
+    header = f"fitted by rtjax fit ({result.solver}, {result.result}, {result.steps} iterations)"
+    if deck_path:
+        header += f"\nfrom {os.path.basename(deck_path)}" + (f" to {os.path.basename(target_path)}" if target_path else "")
+    rtjax.save_deck(paths["deck"], result.scene, image_name, header=header)
+    image = rtjax.render(result.scene)
+    rtjax.save_image(paths["image"], np.asarray(image))
+    write_json(paths["report"], report_dict(result, deck_path, target_path))
+    plot_convergence(result, paths["plot"])
+    return paths
