@@ -179,8 +179,8 @@ def make_levels(target: np.ndarray, weight: np.ndarray, widths: Sequence[int], e
         small = target if (h, w) == (height, width) else downsample(target, h, w)
         wsmall = weight if (h, w) == (height, width) else downsample(weight, h, w)
         t, wt = small.reshape(-1, 3), wsmall.reshape(-1, 1)
-        if k is None:
-            k = len(xy)
+        if k is None or len(xy) <= k:  # the coarsest level, or one no larger: all of it
+            k = len(xy) if k is None else k
             pick = np.arange(k)
         else:
             band = np.flatnonzero(edge_band(small).ravel())
@@ -207,7 +207,9 @@ class Objective:
 
     def residuals(self, y: dict, samples: Samples):
         r = (self.model(y, samples) - samples.target) * samples.weight / 255
-        return robust(r, self.loss, self.loss_scale / 255)
+        # in the solver's float type (see Selection.y0), whatever the render's precision
+        dtype = jax.tree_util.tree_leaves(y)[0].dtype
+        return robust(r, self.loss, self.loss_scale / 255).astype(dtype)
 
 
 def nuisance_y0(names: Sequence[str], dtype) -> dict:

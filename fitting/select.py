@@ -156,7 +156,9 @@ class Selection:
         for name, v in self.start.items():
             t = self.transform[name]
             y[name] = tuple(t.to_free(a) for a in v) if name == "textures" else t.to_free(v)
-        dtype = jnp.result_type(self.scene.params.centers)
+        # The solver's own coordinates: float64 whenever JAX allows it (optimistix's damped
+        # systems are built in the default float type; the render keeps the scene's dtype).
+        dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
         return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), y)
 
     def params(self, y: dict) -> rtjax.Params:

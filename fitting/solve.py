@@ -86,6 +86,7 @@ def fit(
     max_steps: int = 30,
     levels: int | Sequence[int] | None = None,
     edges: float | Sequence[float] | None = None,
+    polish: float | None = 0.02,
     depth: int | None = None,
     loss: str = "cauchy",
     loss_scale: float = 10.0,
@@ -112,11 +113,12 @@ def fit(
       Every level renders the same number of samples (the coarsest level's pixel
       count; finer levels take the pixels near the target's edges and a spread of the
       rest), so one compiled step serves all levels.
-    edges: edge width of the silhouette-aware render in pixels of each level, one value
-      or one per level (the last given value is the full-size level's). Default: 1 on
-      coarse levels (a wide basin) and 0.02 at full size, where a target rendered at
-      pixel centres has sharp edges (the fit then rests on shading, measured to give
-      several times smaller errors than a width of 1 on such targets).
+    edges: edge width of the silhouette-aware render in pixels of each level (default 1):
+      one value, or one per level (the last repeating).
+    polish: a last full-size level with this (narrow) edge width, default 0.02; None
+      for none. A target rendered at pixel centres has sharp edges: box-filtered edges
+      bias the optimum by a few hundredths of a pixel, which the polish removes (it then
+      rests on shading and the sharp edges; measured several times smaller errors).
     loss: 'cauchy' (default, robust), 'huber', or 'l2'; `loss_scale` in levels.
     nuisance: ('gain', 'gamma') fitted jointly: model = 255·(gain·I/255)^γ.
     jac: 'fwd' (default: the Jacobian by forward mode, one batched pass per step) or
@@ -133,20 +135,20 @@ def fit(
     target = load_target(target, assignment_order=assignment_order)
     full = match_size(scene, target)
     selection = Selection(full, free, spheres)
-    dtype = jnp.result_type(full.params.centers)
     y = {"scene": selection.y0()}
+    dtype = jnp.result_type(full.params.centers)
     if nuisance:
-        y["nuisance"] = nuisance_y0(nuisance, dtype)
+        y["nuisance"] = nuisance_y0(nuisance, jax.tree_util.tree_leaves(y["scene"])[0].dtype)
     if jac is None:
         jac = "bwd" if selection.size() > 200 else "fwd"
     widths = schedule_widths(full.structure.width, levels)
-    if edges is None:  # box-filtered edges while coarse; nearly pixel-centre sampling at full size
-        edges = [1.0] * (len(widths) - 1) + [0.02 if len(widths) > 1 else 1.0]
-    given = [float(e) for e in np.ravel(edges)]
+    given = [1.0] if edges is None else [float(e) for e in np.ravel(edges)]
     if not given or min(given) <= 0:
         raise FitError(f"edge widths must be > 0, not {edges}")
-    # one value: every level; several: the last is the full-size level's, the others in order
-    per_level = given * len(widths) if len(given) == 1 else [given[min(i, len(given) - 2)] for i in range(len(widths) - 1)] + [given[-1]]
+    # one value: every level; several: one per level in order, the last repeating
+    per_level = [given[min(i, len(given) - 1)] for i in range(len(widths))]
+    if polish:
+        widths, per_level = widths + [widths[-1]], per_level + [float(polish)]
     pyramid = make_levels(target, prepare_mask(mask, *target.shape[:2]), widths, per_level, dtype)
     objective = Objective(selection, depth, loss, loss_scale)
     run = _Stepper(objective, SOLVERS[solver](rtol, atol), solver, jac)
@@ -156,8 +158,10 @@ def fit(
     best = (y, math.inf)
     for level, (width, samples) in enumerate(zip(widths, pyramid)):
         final = level == len(widths) - 1
-        # coarse levels get at most half of what is left; the last level the rest
-        budget = max_steps - steps if final else max(1, (max_steps - steps) // 2)
+        # the coarsest level does most of the travelling: half of the steps; later levels
+        # share what is left equally (one that stalls early hands its remainder on)
+        share = 2 if level == 0 else len(widths) - level
+        budget = max_steps - steps if final else max(1, (max_steps - steps) // share)
         best, result, n = run.level(best[0], samples, budget, not final, history, steps, width, callback, t_start)
         steps += n
     fitted = selection.scene_at(best[0]["scene"])
@@ -169,7 +173,7 @@ def fit(
         y=best[0],
         history=history,
         result=name,
-        message="converged" if name == "successful" else _message(result),
+        message=("converged: the loss levelled off" if run.levelled else "converged") if name == "successful" else _message(result),
         converged=name == "successful",
         steps=steps,
         nuisance={k: float(jnp.exp(v)) for k, v in best[0].get("nuisance", {}).items()},
@@ -224,6 +228,7 @@ class _Stepper:
             return 0.5 * jnp.mean(r * r)
 
         self.loss = loss
+        self.levelled = False  # the last level stopped because its loss levelled off
         self.init = eqx.filter_jit(self._init)
         self.step = eqx.filter_jit(self._step)
 
@@ -269,6 +274,11 @@ class _Stepper:
             if callback is not None:
                 callback(row)
             if done or (coarse and stalled >= 2):
+                break
+            if stalled >= 4 and not coarse:
+                # four iterations without a 1 % decrease at full size: steps are being
+                # rejected (the damping grows) or are negligible; the loss has levelled off
+                done, result, self.levelled = True, optx.RESULTS.successful, True
                 break
         if not done and not coarse:
             result = optx.RESULTS.max_steps_reached

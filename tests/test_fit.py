@@ -1,0 +1,178 @@
+"""Fitting: recovery of known truths on small images, targets of every kind, bad input,
+and a solve that cannot converge (reported, never raised)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import ROOT, scene_from_text
+
+import fitting
+import rtjax
+
+DECK = """
+sphe -9 0 0 8
+opaq 0.9 0.3 0.2 0.4 12
+sphe 9 4 2 7
+opaq 0.2 0.6 0.9 0.3 8
+plig 0.4 -1 0.8 220 210 200
+elig 0.25
+back 10 20 60
+eyep 0 -50 10
+refp 0 0 0
+vang 60 45
+size 64
+rend truth.sunimg
+"""
+
+
+@pytest.fixture(scope="module")
+def truth() -> rtjax.Scene:
+    return scene_from_text(DECK)
+
+
+@pytest.fixture(scope="module")
+def target(truth) -> np.ndarray:
+    """The truth rendered at pixel centres and rounded to levels, as a file would hold it."""
+    return np.floor(np.asarray(rtjax.render(truth)) + 0.5)
+
+
+def moved(scene: rtjax.Scene, **deltas) -> rtjax.Scene:
+    return scene.replace(**{k: np.asarray(getattr(scene.params, k)) + v for k, v in deltas.items()})
+
+
+def test_recovers_centres(truth, target):
+    """Off by up to 1.5 units (a fifth of a radius) in every direction. Depth (along the
+    view, y here) is seen only through perspective, so it is the least determined."""
+    start = moved(truth, centers=np.array([[1.5, -1.0, 1.2], [-1.3, 1.0, -1.4]]))
+    res = fitting.fit(start, target, "centers", max_steps=25)
+    err = np.abs(np.asarray(res.scene.params.centers) - np.asarray(truth.params.centers))
+    assert err[:, [0, 2]].max() < 0.05 and err[:, 1].max() < 0.15, res.table()
+    assert res.history and res.history[-1]["best_loss"] < res.history[0]["loss"]
+
+
+def test_recovers_colours_and_ke(truth, target):
+    start = truth.replace(diffuse=np.full((2, 3), 0.5), ke=0.5)
+    res = fitting.fit(start, target, "colors,ke", max_steps=20)
+    np.testing.assert_allclose(np.asarray(res.scene.params.diffuse), np.asarray(truth.params.diffuse), atol=2e-3)
+    assert abs(float(res.scene.params.ke) - 0.25) < 2e-3
+    assert res.converged, res.message
+
+
+def test_recovers_radii_and_light_direction(truth, target):
+    start = truth.replace(radii=np.array([7.0, 8.0]), light_dirs=np.array([[0.6, -1.0, 0.5]]))
+    res = fitting.fit(start, target, "radii,light", max_steps=30)
+    np.testing.assert_allclose(np.asarray(res.scene.params.radii), [8, 7], atol=0.03)
+    fitted = np.asarray(res.scene.params.light_dirs[0])
+    want = np.array([0.4, -1, 0.8])
+    cos = fitted @ want / np.linalg.norm(fitted) / np.linalg.norm(want)
+    assert cos > 1 - 1e-5, fitted
+
+
+def test_bounded_parameters_stay_in_range(truth):
+    """A target no valid colour can match (pure white): colours end at the bound, never past it."""
+    white = np.full((truth.structure.height, truth.structure.width, 3), 255.0)
+    res = fitting.fit(truth, white, "colors,ke", max_steps=8)
+    d = np.asarray(res.scene.params.diffuse)
+    assert d.min() >= 0 and d.max() <= 1 and 0 <= float(res.scene.params.ke) <= 1
+
+
+def test_only_chosen_spheres_move(truth, target):
+    start = moved(truth, centers=np.array([[1.0, 0, 0.5], [0.5, 0, 0.5]]))
+    res = fitting.fit(start, target, "centers", spheres=[1], max_steps=5)
+    np.testing.assert_array_equal(np.asarray(res.scene.params.centers[0]), np.asarray(start.params.centers[0]))
+    assert [r[0] for r in res.table()] == ["sphere 1 centre"]
+
+
+def test_target_of_another_size_with_the_same_aspect(truth):
+    big = truth.resized(80)
+    target = np.asarray(rtjax.render(big))
+    res = fitting.fit(truth, target, "ke", max_steps=3)
+    assert (res.scene.structure.width, res.scene.structure.height) == (80, big.structure.height)
+
+
+def test_target_of_the_wrong_aspect_is_a_clear_error(truth):
+    with pytest.raises(fitting.FitError, match="aspect"):
+        fitting.fit(truth, np.zeros((64, 64, 3)), "centers")
+
+
+@pytest.mark.parametrize("bad, match", [(dict(free="wings"), "unknown parameter family"), (dict(solver="newton"), "unknown solver"),
+                                        (dict(free="kt"), "kt: none of"), (dict(spheres=[5]), "out of range")])
+def test_bad_requests(truth, target, bad, match):
+    kwargs = dict(free="centers") | bad
+    with pytest.raises(fitting.FitError, match=match):
+        fitting.fit(truth, target, **kwargs)
+
+
+def test_a_solve_that_cannot_converge_reports_so(truth, target):
+    """One step from far away: the result says the steps ran out; nothing raises."""
+    start = moved(truth, centers=np.array([[3.0, 0, 2.0], [-3.0, 0, -2.0]]))
+    res = fitting.fit(start, target, "centers", max_steps=1)
+    assert not res.converged and res.result == "max_steps_reached" and res.message
+    assert res.steps == 1 and np.all(np.isfinite(np.asarray(res.scene.params.centers)))
+
+
+@pytest.mark.parametrize("solver", ["gn", "dogleg", "bfgs"])
+def test_other_solvers_reduce_the_loss(truth, target, solver):
+    start = truth.replace(ke=0.4, diffuse=np.asarray(truth.params.diffuse) * 0.8)
+    res = fitting.fit(start, target, "colors,ke", solver=solver, max_steps=6)
+    assert res.history[-1]["best_loss"] < 0.2 * res.history[0]["loss"]
+    assert abs(float(res.scene.params.ke) - 0.25) < 0.05
+
+
+def test_photo_like_target_with_gain_and_gamma(truth):
+    """A target seen through a camera response 255·(1.2·I/255)^0.9 plus noise: the
+    nuisance parameters absorb the response and the colours come back."""
+    rng = np.random.default_rng(0)
+    image = np.asarray(rtjax.render(truth))
+    photo = 255 * np.clip(1.2 * image / 255, 0, 1) ** 0.9 + rng.normal(0, 2, image.shape)
+    start = truth.replace(diffuse=np.full((2, 3), 0.5))
+    res = fitting.fit(start, np.clip(photo, 0, 255), "colors", nuisance=("gain", "gamma"), max_steps=25)
+    np.testing.assert_allclose(np.asarray(res.scene.params.diffuse), np.asarray(truth.params.diffuse), atol=0.03)
+    assert abs(res.nuisance["gain"] - 1.2) < 0.08 and abs(res.nuisance["gamma"] - 0.9) < 0.05
+
+
+def test_targets_from_files_in_both_byte_orders(truth, target, tmp_path):
+    for name, kw in (("t.sunimg", {}), ("t_assignment.sunimg", {"assignment_order": True}), ("t.png", {})):
+        rtjax.save_image(tmp_path / name, target, **kw)
+        loaded = fitting.load_target(str(tmp_path / name), **kw)
+        np.testing.assert_array_equal(loaded, target)
+
+
+def test_cli_fit_writes_its_outputs(tmp_path, truth, target):
+    """`rtjax fit` end to end: progress lines, a table, the fitted deck (a valid deck that
+    renders the fitted image), the image, the JSON report and the plot; exit 0 or 1."""
+    rtjax.save_image(tmp_path / "target.sunimg", target)
+    start = truth.replace(ke=0.4)
+    rtjax.save_deck(tmp_path / "start.dat", start, "start.sunimg")
+    out = tmp_path / "out" / "fitted.dat"
+    proc = subprocess.run(
+        [sys.executable, "-m", "rtjax", "fit", str(tmp_path / "start.dat"), str(tmp_path / "target.sunimg"),
+         "--free", "ke", "-o", str(out), "--max-steps", "12"],
+        capture_output=True, text=True, cwd=ROOT, timeout=600,
+    )
+    assert proc.returncode in (0, 1), proc.stderr
+    assert "step   1" in proc.stdout and "ke" in proc.stdout and "Traceback" not in proc.stderr
+    report = json.loads((tmp_path / "out" / "fitted.json").read_text())
+    assert report["free"] == ["ke"] and report["iterations"] == len(report["history"]) >= 1
+    assert abs(report["parameters"][0]["fitted"] - 0.25) < 0.01
+    assert (proc.returncode == 0) == report["converged"]
+    fitted = rtjax.load_deck(out)
+    assert abs(float(fitted.frames[0].scene.params.ke) - report["parameters"][0]["fitted"]) < 1e-6
+    assert rtjax.load_image(tmp_path / "out" / "fitted.sunimg").shape == target.shape
+    assert (tmp_path / "out" / "fitted_convergence.png").stat().st_size > 1000
+
+
+def test_cli_fit_bad_input_is_one_line(tmp_path, truth):
+    rtjax.save_deck(tmp_path / "start.dat", truth, "x.sunimg")
+    rtjax.save_image(tmp_path / "square.png", np.zeros((64, 64, 3)))
+    proc = subprocess.run([sys.executable, "-m", "rtjax", "fit", str(tmp_path / "start.dat"), str(tmp_path / "square.png")],
+                          capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert proc.returncode == 2 and "aspect" in proc.stderr and "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
