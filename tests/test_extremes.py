@@ -1,0 +1,157 @@
+"""Numerical extremes (issue: derivatives you can trust): each in a test of its own, the
+image and its derivatives with respect to every array leaf finite, float32 and float64,
+forward and reverse mode, plain and (where edges matter) silhouette-aware."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import rtjax
+
+SIZE = "size 8\n"
+
+
+def deck(body: str, camera: str = "eyep 0 -50 0\nrefp 0 0 0\nvang 40 30\n") -> rtjax.Scene:
+    return rtjax.parse_deck(body + camera + SIZE + "rend x.ras\n").frames[0].scene
+
+
+@functools.partial(jax.jit, static_argnames=("structure", "depth", "edges"))
+def _image_jvp_vjp(params, tangent, cotangent, structure, depth, edges):
+    """The image, J·t and Jᵀ·c for random t and c. A NaN or Inf anywhere in the Jacobian
+    reaches J·t or Jᵀ·c (random directions do not cancel it), so these two products
+    check every entry in both modes at the cost of one forward and one reverse pass.
+    Jitted by structure: the tests that share a structure share one compilation."""
+
+    def f(p):
+        return rtjax.render(rtjax.Scene(structure, p), depth=depth, edges=edges)
+
+    image, jvp = jax.jvp(f, (params,), (tangent,))
+    _, vjp = jax.vjp(f, params)
+    return image, jvp, vjp(cotangent)[0]
+
+
+def assert_finite_everywhere(scene: rtjax.Scene, depth: int | None = None, edges: float = 0.0):
+    depth = scene.structure.default_depth if depth is None else depth
+    leaves, treedef = jax.tree_util.tree_flatten(scene.params)
+    keys = jax.random.split(jax.random.key(0), len(leaves) + 1)
+    for dtype in (jnp.float32, jnp.float64):
+        s = scene.astype(dtype)
+        tangent = jax.tree_util.tree_unflatten(treedef, [jax.random.normal(k, l.shape, dtype) for k, l in zip(keys, leaves)])
+        cotangent = jax.random.normal(keys[-1], (s.structure.height, s.structure.width, 3), dtype)
+        image, jvp, grads = _image_jvp_vjp(s.params, tangent, cotangent, s.structure, depth, edges)
+        name = jnp.dtype(dtype).name
+        assert image.dtype == dtype and bool(jnp.all(jnp.isfinite(image))), f"image not finite ({name})"
+        assert bool(jnp.all(jnp.isfinite(jvp))), f"forward-mode derivative not finite ({name})"
+        bad = {jax.tree_util.keystr(k): int(jnp.sum(~jnp.isfinite(v))) for k, v in jax.tree_util.tree_leaves_with_path(grads)}
+        assert not any(bad.values()), f"reverse-mode derivative not finite ({name}): {bad}"
+    return image
+
+
+LIT = "plig 0.3 -1 0.5 200 180 160\nelig 0.2\nback 10 20 30\n"
+
+
+@pytest.mark.parametrize("edges", [0.0, 1.0])
+def test_tangent_ray(edges):
+    # the vertical image centre line of an 8-wide image lies between pixels; put the
+    # sphere's silhouette exactly on pixel centres by aligning it with a ray direction
+    scene = deck("sphe 0 0 0 5\nopaq 1 0.5 0.2 0.3 10\n" + LIT)
+    o, d = rtjax.camera.primary_rays(scene.params.eye, scene.params.refp, scene.params.vang, 8, 6, jnp.array([0.5, 0.5]))
+    d = np.asarray(d)[:, 3 * 8 + 5]  # some pixel's ray
+    eye = np.asarray(scene.params.eye)
+    # radius = distance from the centre to that ray: the ray is exactly tangent
+    r = np.linalg.norm(np.cross(-eye, d))
+    assert_finite_everywhere(scene.replace(radii=np.array([r], np.float32)), edges=edges)
+
+
+def test_total_internal_reflection_onset_and_past_it():
+    # eye inside a glass sphere of n = 1.5: rays leave at every angle; the critical
+    # angle asin(1/1.5) is crossed within the image
+    scene = deck("sphe 0 -45 0 20\ntrpa 0.9 1.5 0.2 10\nsphe 0 30 0 10\nopaq 1 0 0 0 1\n" + LIT)
+    assert_finite_everywhere(scene, depth=3)
+
+
+def test_n_equal_one():
+    assert_finite_everywhere(deck("sphe 0 0 0 10\ntrpa 0.8 1 0.3 5\n" + LIT), depth=2)
+
+
+@pytest.mark.parametrize("kt", ["0", "1"])
+def test_kt_extremes(kt):
+    assert_finite_everywhere(deck(f"sphe 0 0 0 10\ntrpa {kt} 1.3 0.3 5\nsphe 0 30 0 10\nopaq 0 1 0 0.5 3\n" + LIT), depth=2)
+
+
+def test_ks_zero():
+    assert_finite_everywhere(deck("sphe 0 0 0 10\nopaq 1 1 1 0 1\n" + LIT))
+
+
+@pytest.mark.parametrize("beta", ["1", "10000"])
+def test_beta_extremes(beta):
+    assert_finite_everywhere(deck(f"sphe 0 0 0 10\nopaq 1 1 1 1 {beta}\n" + LIT))
+
+
+def test_cos_gamma_zero_exactly():
+    # light along +x, the centre pixel sees the point (0, -10, 0) with N = -y = V·(-1):
+    # R_L = 2(N·L)N − L = −L ⟂ V → cos γ = 0, and N·L = 0 too; nudge L so N·L > 0 but R_L·V = 0
+    scene = deck("sphe 0 0 0 10\nopaq 1 1 1 1 7\nplig 1 0 0 255 255 255\n", "eyep 0 -50 0\nrefp 0 0 0\nvang 40 40\n")
+    assert_finite_everywhere(scene)
+
+
+def test_light_grazing_the_surface():
+    # N·L = 0 along the sphere's terminator, which crosses the image
+    assert_finite_everywhere(deck("sphe 0 0 0 10\nopaq 1 1 1 0.5 3\nplig 1 0 0 255 255 255\n"))
+
+
+def test_light_exactly_behind_the_eye():
+    assert_finite_everywhere(deck("sphe 0 0 0 10\nopaq 1 1 1 0.5 3\nplig 0 -1 0 255 255 255\n"))
+
+
+@pytest.mark.parametrize("radius, distance", [("1e-3", "5e-3"), ("1e5", "3e5")])
+def test_tiny_and_huge_spheres(radius, distance):
+    scene = deck(f"sphe 0 0 0 {radius}\nopaq 1 0.5 0 0.4 10\n" + LIT, f"eyep 0 -{distance} 0\nrefp 0 0 0\nvang 40 30\n")
+    image = assert_finite_everywhere(scene, edges=1.0)
+    assert float(image[3, 4, 0]) > 50  # the sphere is seen, lit, at the centre
+
+
+def test_scene_translated_by_1e4():
+    body = "sphe {x} 0 0 10\nopaq 1 0.5 0 0.4 10\nsphe {x2} 0 -5 6\nmirr\nplig 0.3 -1 0.5 200 180 160\nelig 0.2\nback 10 20 30\n"
+    cam = "eyep {x} -50 10\nrefp {x} 0 0\nvang 40 30\n"
+    near = deck(body.format(x=0, x2=14), cam.format(x=0))
+    far = deck(body.format(x=10000, x2=10014), cam.format(x=10000))
+    assert_finite_everywhere(far, depth=2)
+    # self-intersection stays right: the translated scene looks the same (float64)
+    a = np.asarray(rtjax.render(near.astype(jnp.float64), depth=2))
+    b = np.asarray(rtjax.render(far.astype(jnp.float64), depth=2))
+    np.testing.assert_allclose(a, b, atol=1e-6)
+    # and in float32, no speckles of self-shadowing: nearly all pixels agree
+    a32 = np.asarray(rtjax.render(near, depth=2))
+    b32 = np.asarray(rtjax.render(far, depth=2))
+    assert np.mean(np.abs(a32 - b32).max(-1) < 1) > 0.97
+
+
+def test_eye_inside_an_opaque_sphere():
+    image = assert_finite_everywhere(deck("sphe 0 -50 0 5\nopaq 1 0.5 0.2 0.5 5\n" + LIT), edges=1.0)
+    # inside: only ambient, ke·d·L summed over lights
+    np.testing.assert_allclose(np.asarray(image)[3, 4], 0.2 * np.array([1, 0.5, 0.2]) * np.array([200, 180, 160]), rtol=1e-4)
+
+
+def test_eye_inside_a_glass_sphere():
+    assert_finite_everywhere(deck("sphe 0 -50 0 5\ntrpa 0.8 1.4 0.3 5\nsphe 0 0 0 10\nopaq 1 1 0 0 1\n" + LIT), depth=3)
+
+
+def test_two_spheres_touching():
+    scene = deck("sphe -5 0 0 5\nopaq 1 0 0 0.3 5\nsphe 5 0 0 5\nmirr\n" + LIT)
+    assert_finite_everywhere(scene, depth=2, edges=1.0)
+
+
+def test_sphere_behind_the_eye():
+    scene = deck("sphe 0 -80 0 10\nopaq 1 0 0 0.3 5\nsphe 0 0 0 5\nmirr\n" + LIT)
+    image = assert_finite_everywhere(scene, depth=2, edges=1.0)
+    assert float(np.asarray(image)[3, 4, 0]) > 0  # seen in the mirror
+
+
+def test_eye_on_the_z_axis_looking_down():
+    assert_finite_everywhere(deck("sphe 0 0 0 5\nopaq 1 0 0 0.3 5\n" + LIT, "eyep 0 0 50\nrefp 0 0 0\nvang 40 30\n"), edges=1.0)
