@@ -22,7 +22,10 @@ import rtjax
 from .errors import FitError
 from .select import Selection
 
-NUISANCE = ("gain", "gamma")
+NUISANCE = ("gain", "gamma", "blur")
+#: Start values of the nuisance parameters (their logs are fitted): no gain or gamma
+#: change; a Gaussian blur of σ = 0.3 pixels.
+NUISANCE_START = {"gain": 1.0, "gamma": 1.0, "blur": 0.3}
 LOSSES = ("l2", "huber", "cauchy")
 
 
@@ -107,7 +110,8 @@ def robust(r, loss: str, scale: float):
 
 
 def apply_nuisance(image, nuisance: dict):
-    """A camera's response: 255·(gain·I/255)^γ, with the gain and γ fitted jointly."""
+    """A camera's response: 255·(gain·I/255)^γ, with the gain and γ fitted jointly
+    (the blur acts on the render's edges, see `Objective.model`)."""
     if not nuisance:
         return image
     x = image / 255
@@ -202,8 +206,15 @@ class Objective:
 
     def model(self, y: dict, samples: Samples):
         scene = rtjax.Scene(self.selection.scene.structure, self.selection.params(y["scene"]))
-        colours = rtjax.render_samples(scene, samples.xy, step=samples.step, depth=self.depth, edges=samples.width)
-        return apply_nuisance(colours, y.get("nuisance", {}))
+        nuisance = y.get("nuisance", {})
+        width = samples.width
+        if "blur" in nuisance:
+            # a photo's blur of σ (full-size pixels) widens the edges' box filter: a box of
+            # width √12·σ has the same variance; widths add in quadrature
+            sigma = jnp.exp(nuisance["blur"]) / samples.step
+            width = jnp.sqrt(width**2 + 12 * sigma**2)
+        colours = rtjax.render_samples(scene, samples.xy, step=samples.step, depth=self.depth, edges=width)
+        return apply_nuisance(colours, nuisance)
 
     def residuals(self, y: dict, samples: Samples):
         r = (self.model(y, samples) - samples.target) * samples.weight / 255
@@ -216,7 +227,7 @@ def nuisance_y0(names: Sequence[str], dtype) -> dict:
     bad = [n for n in names if n not in NUISANCE]
     if bad:
         raise FitError(f"unknown nuisance parameter {bad[0]!r}; choose from {', '.join(NUISANCE)}")
-    return {n: jnp.zeros((), dtype) for n in names}
+    return {n: jnp.asarray(np.log(NUISANCE_START[n]), dtype) for n in names}
 
 
 def prepare_mask(mask, height: int, width: int) -> np.ndarray:

@@ -120,7 +120,9 @@ def fit(
       bias the optimum by a few hundredths of a pixel, which the polish removes (it then
       rests on shading and the sharp edges; measured several times smaller errors).
     loss: 'cauchy' (default, robust), 'huber', or 'l2'; `loss_scale` in levels.
-    nuisance: ('gain', 'gamma') fitted jointly: model = 255·(gain·I/255)^γ.
+    nuisance: fitted jointly with the scene for photo-like targets: 'gain' and 'gamma'
+      (model = 255·(gain·I/255)^γ) and 'blur' (a Gaussian σ in pixels, as a wider box
+      filter at edges).
     jac: 'fwd' (default: the Jacobian by forward mode, one batched pass per step) or
       'bwd' (reverse mode, for many free parameters such as texels).
     callback: called after every iteration with that iteration's history row.
