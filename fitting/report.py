@@ -107,7 +107,16 @@ def save_outputs(result: FitResult, outdir: str, stem: str, deck_path: str | Non
     header = f"fitted by rtjax fit ({result.solver}, {result.result}, {result.steps} iterations)"
     if deck_path:
         header += f"\nfrom {os.path.basename(deck_path)}" + (f" to {os.path.basename(target_path)}" if target_path else "")
-    rtjax.save_deck(paths["deck"], result.scene, image_name, header=header)
+    scene = result.scene
+    if "textures" in result.selection.families:
+        # fitted texels are new images: write them beside the deck and point `tmap` at them
+        names = []
+        for k, texels in enumerate(scene.params.textures):
+            names.append(f"{stem}_texture{k}.sunimg")
+            rtjax.save_image(os.path.join(outdir, names[-1]), np.asarray(texels))
+            paths[f"texture{k}"] = os.path.join(outdir, names[-1])
+        scene = rtjax.Scene(scene.structure.replace(texture_files=tuple(names)), scene.params)
+    rtjax.save_deck(paths["deck"], scene, image_name, header=header)
     image = rtjax.render(result.scene)
     rtjax.save_image(paths["image"], np.asarray(image))
     write_json(paths["report"], report_dict(result, deck_path, target_path))
