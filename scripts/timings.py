@@ -1,0 +1,68 @@
+"""The figures quoted in the README and the issues' closing notes, measured side by side
+in one run on the sample deck (400×294, float32, depth 10):
+
+compile time and median forward time, plain and silhouette-aware; reverse gradient
+(jax.grad of the mean image w.r.t. all parameters) and jacfwd w.r.t. the 24 centre
+coordinates, each as a ratio to the plain forward time of the same run.
+
+  python scripts/timings.py [--runs 5] [--deck scenes/ex2s3.dat]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+
+import rtjax
+
+
+def timed(fn, *args, runs: int):
+    t = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    first = time.perf_counter() - t
+    times = []
+    for _ in range(runs):
+        t = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t)
+    return first - statistics.median(times), statistics.median(times)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--deck", default="scenes/ex2s3.dat")
+    ap.add_argument("--runs", type=int, default=5)
+    args = ap.parse_args()
+    scene = rtjax.load_deck(args.deck).frames[0].scene
+    s = scene.structure
+    rows = []
+    base = None
+    for edges in (0.0, 1.0):
+        def image(p):
+            return rtjax.render(rtjax.Scene(s, p), edges=edges)
+
+        def image_c(c):
+            return rtjax.render(scene.replace(centers=c), edges=edges)
+
+        fwd = jax.jit(image)
+        grad = jax.jit(jax.grad(lambda p: jnp.mean(image(p))))
+        jac = jax.jit(jax.jacfwd(image_c))
+        c_f, t_f = timed(fwd, scene.params, runs=args.runs)
+        base = base or t_f
+        c_g, t_g = timed(grad, scene.params, runs=args.runs)
+        c_j, t_j = timed(jac, scene.params.centers, runs=max(1, args.runs // 2))
+        mode = "silhouette-aware (edges=1)" if edges else "plain"
+        rows.append((mode, c_f, t_f, c_g, t_g, c_j, t_j))
+    print(f"{s.width}x{s.height}, depth {s.default_depth}, float32, median of {args.runs} runs after compile, {jax.devices()[0].platform}")
+    print(f"{'mode':28s} {'forward':>18s} {'reverse grad':>22s} {'jacfwd (24 centres)':>24s}")
+    for mode, c_f, t_f, c_g, t_g, c_j, t_j in rows:
+        print(f"{mode:28s} {t_f*1e3:7.1f} ms ({t_f/base:4.2f}x) {t_g*1e3:9.1f} ms ({t_g/base:5.2f}x) {t_j*1e3:10.1f} ms ({t_j/base:6.2f}x)")
+    print("compile (s):", "; ".join(f"{m}: forward {c_f:.1f}, grad {c_g:.1f}, jacfwd {c_j:.1f}" for m, c_f, _, c_g, _, c_j, _ in rows))
+
+
+if __name__ == "__main__":
+    main()
