@@ -43,7 +43,9 @@ def scene_like(h: int = 294, w: int = 400) -> np.ndarray:
 
 
 def pil_rgb(path: str) -> np.ndarray:
-    with Image.open(path) as im:
+    # formats=["SUN"]: Pillow's sniffer takes a 1-pixel-wide Sun raster for a GIMP brush
+    # (magic, then width 1 reads as brush version 1)
+    with Image.open(path, formats=["SUN"]) as im:
         return np.asarray(im.convert("RGB"))
 
 
