@@ -220,6 +220,21 @@ def cmd_fit(args) -> int:
     return 0 if result.converged else 1
 
 
+def cmd_bench(args) -> int:
+    """`rtjax bench`: the speed/accuracy table, derivative costs and plots of a deck."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)  # the reference renders in float64
+    from .bench import main_bench
+    from .deck import load_deck
+
+    deck = load_deck(args.deck)  # a bad deck is one line before anything is measured
+    if not deck.frames:
+        raise DeckError(deck.path, None, "the deck has no rend line: nothing to measure")
+    main_bench(args.deck, quick=args.quick, scale=args.scale, outdir=args.outdir)
+    return 0
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse whose errors are one line on stderr (no usage block), exit code 2."""
 
@@ -270,6 +285,17 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--assignment-order", action="store_true", help="the target is a Sun raster file in the assignment's R,G,B order")
     f.add_argument("--quiet", action="store_true", help="no per-iteration progress")
     f.set_defaults(run=cmd_fit)
+
+    b = sub.add_parser("bench", help="measure speed against accuracy of each knob on a deck",
+                       description="Measure each knob (dtype, depth, samples per pixel, edge width, image scale) on DECK's "
+                                   "first frame against a float64 reference render; time derivatives and the NumPy reference; "
+                                   "print a table, write bench_<deck>.json and a Pareto plot bench_<deck>.png.")
+    b.add_argument("deck", help="the deck file (.dat); its first frame is measured")
+    b.add_argument("--quick", action="store_true", help="smaller reference (8×8 samples), fewer settings, derivatives at ¼ size")
+    b.add_argument("--scale", action="store_true",
+                   help="also time random scenes of 8…1000 spheres, the deck at several widths, and gradient memory against depth")
+    b.add_argument("-o", "--outdir", default=".", help="folder for the JSON and PNG files (default: the current folder)")
+    b.set_defaults(run=cmd_bench)
     return parser
 
 

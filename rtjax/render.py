@@ -12,6 +12,7 @@ from .camera import pixel_grid, rays_through, subpixel_offsets
 from .edges import Differentials
 from .errors import RtjaxError
 from .scene import Params, Scene, Structure
+from .spheres import coherent_order, culls
 from .trace import tiled, trace, trace_edges
 
 
@@ -88,7 +89,12 @@ def _render(params: Params, structure: Structure, depth: int, spp: int, tile: in
     s, p = structure, params
 
     def sample(offset):
-        return colours_at(s, p, pixel_grid(s.width, s.height, offset), jnp.asarray(1 / spp, offset.dtype), depth, tile, edges)
+        xy = pixel_grid(s.width, s.height, offset)
+        if not culls(s.n_spheres):
+            return colours_at(s, p, xy, jnp.asarray(1 / spp, offset.dtype), depth, tile, edges)
+        # large scenes cull spheres per group of consecutive rays: trace 8×8 blocks together
+        order, inverse = coherent_order(s.width, s.height)
+        return colours_at(s, p, xy[:, order], jnp.asarray(1 / spp, offset.dtype), depth, tile, edges)[:, inverse]
 
     offsets = subpixel_offsets(spp, p.eye.dtype)
     if spp == 1:

@@ -19,6 +19,9 @@ length relative to the scene's scale (touching spheres), never an absolute const
 
 from __future__ import annotations
 
+import contextlib
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
@@ -61,19 +64,21 @@ def _roots(o, d, centers, radii, origin, tmin):
     return near_ok, far_ok, near, far
 
 
-def nearest(o, d, centers, radii, origin: Int[Array, " p"], tmin, exclude=None):
+def nearest(o, d, centers, radii, origin: Int[Array, " p"], tmin, exclude=None, active=None):
     """Per ray: distance to the nearest valid root (+inf if none), which sphere, and
-    whether it is that sphere's far root. Not differentiated (a discrete choice)."""
+    whether it is that sphere's far root. Not differentiated (a discrete choice).
+
+    Scenes of more than `CULL_ABOVE` spheres test each group of rays only against the
+    spheres it can meet (`culled_nearest`): the same answer. `active` (per ray, or None
+    for all) marks the rays whose answer is used; the others may get any answer."""
     o, d, centers, radii = jax.lax.stop_gradient((o, d, centers, radii))
+    if culls(centers.shape[0]):
+        return culled_nearest(o, d, centers, radii, origin, tmin, exclude, active)
     near_ok, far_ok, near, far = _roots(o, d, centers, radii, origin, tmin)
     if exclude is not None:  # silhouette mode: the same rays with one sphere removed
         keep = exclude[None, :] != jnp.arange(centers.shape[0])[:, None]
         near_ok, far_ok = near_ok & keep, far_ok & keep
-    # Far roots carry a minus sign (both roots are > tmin > 0), so one argmin over |t|
-    # and one gather answer all three questions: the form XLA's CPU backend runs fastest.
-    signed = jnp.where(near_ok, near, jnp.where(far_ok, -far, jnp.inf))
-    idx = jnp.argmin(jnp.abs(signed), axis=0).astype(jnp.int32)
-    t = jnp.take_along_axis(signed, idx[None], axis=0)[0]
+    t, idx = _signed_nearest(near_ok, far_ok, near, far, jnp.arange(centers.shape[0], dtype=jnp.int32)[:, None], 0)
     return jnp.abs(t), idx, t < 0
 
 
@@ -100,8 +105,8 @@ class Hit:
     c + r·l̂, where the ray passes closest to it (entering).
     """
 
-    def __init__(self, o, d, centers, radii, origin, tmin, exclude=None, force=None):
-        best, idx, far = nearest(o, d, centers, radii, origin, tmin, exclude)
+    def __init__(self, o, d, centers, radii, origin, tmin, exclude=None, force=None, active=None):
+        best, idx, far = nearest(o, d, centers, radii, origin, tmin, exclude, active)
         found = jnp.isfinite(best)
         if force is not None:
             forced = (force >= 0) & (~found | (idx != force))
@@ -122,19 +127,333 @@ class Hit:
         self.t = jnp.where(found, t, 0)  # no inf in later arithmetic
         self.normal_out = jnp.where(found, normal, 0)
         self.point = jnp.where(found, point, o)
+        #: the hits whose shading is used: found, on an active ray (see `nearest`)
+        self.live: Bool[Array, " p"] = found if active is None else found & active
 
 
-def transmission(o, d, centers, radii, origin, tmin, opacity_factor, skip=None) -> Float[Array, " p"]:
+def transmission(o, d, centers, radii, origin, tmin, opacity_factor, skip=None, active=None, grid=None) -> Float[Array, " p"]:
     """Shadow visibility along parallel-light rays: Π over spheres met of their factor.
 
     `opacity_factor[j]` is 0 for opaque, mirror and textured spheres and kt² for glass
     (shadow rays pass straight through glass, weighted kt² per sphere, DECK.md §3).
     A sphere counts if the ray meets it ahead of the origin (its far root is ahead).
     `skip` (per ray, a sphere index or −1) leaves one sphere out (the silhouette mode
-    accounts for it smoothly).
+    accounts for it smoothly). `grid`: the `light_grid` of the direction d every ray
+    shares, for large scenes (`culled_transmission`; `active` as in `nearest`).
     """
+    if grid is not None:
+        return culled_transmission(o, grid, centers, radii, origin, tmin, opacity_factor, skip, active)
     _, blocked, _, _ = _roots(*jax.lax.stop_gradient((o, d, centers, radii)), origin, tmin)
     if skip is not None:
         blocked = blocked & (skip[None, :] != jnp.arange(centers.shape[0])[:, None])
     factor = jnp.where(blocked, opacity_factor[:, None], 1)
     return jnp.prod(factor, axis=0)
+
+
+# -- culling: each ray against the spheres it can meet ------------------------------------
+#
+# Beyond `CULL_ABOVE` spheres, testing every ray against every sphere costs rays ×
+# spheres. Two conservative structures cut that down without changing any answer: a
+# sphere is dropped for a ray only when that ray cannot meet it at any root, so the
+# nearest hit (ties included: candidates stay in increasing index order) and the
+# shadow factors met are those over all spheres. The choices are discrete, made under
+# `stop_gradient`; what is differentiated (distances, normals, kt²) is computed after,
+# as without culling.
+#
+# * Nearest hits (`culled_nearest`): the rays whose answer is used (`active`) are
+#   packed to the front (in their order) and taken CHUNK at a time in a `while_loop`
+#   that stops after the last active ray, so the cost follows the active rays, not the
+#   image (after the first segment, a few per cent of the pixels). A chunk is cut into
+#   groups of GROUP consecutive rays (8×8 pixels for primary rays in `coherent_order`),
+#   each bounded by a ball holding its origins (centre o_c, radius ρ) and a cone
+#   holding its directions (axis a, half-angle θ): if ray (o, d) meets sphere (c, r) at
+#   some t > 0, the point o_c + t·d lies within R = r + ρ of c, so |c − o_c| ≤ R or the
+#   angle between c − o_c and a is at most θ + asin(R/|c − o_c|). Each group tests the
+#   (at most `capacity`) spheres that pass; a chunk where a group has more (incoherent
+#   rays: reflections off curved mirrors, refractions) tests every sphere instead.
+# * Shadow rays toward a parallel light (`LightGrid`, `culled_transmission`): all share
+#   the direction L, so a ray from o meets sphere (c, r) exactly when o's projection on
+#   the plane ⊥ L lies within r of c's. The spheres' discs are binned once per render on
+#   a grid in that plane; each active ray tests the spheres listed in its cell (packed
+#   in chunks as above) and records which of them block it as bits; the product of
+#   their factors (kt² or 0) is then taken per ray, differentiably. If a cell lists more
+#   than `capacity` spheres, every ray is tested against every sphere.
+# Slack against rounding: radii grow by a relative `_RADIUS_SLACK` plus `tmin`, cones
+# by `_ANGLE_SLACK` radians.
+
+#: Scenes with at most this many spheres test every ray against every sphere (the
+#: fast path for small scenes); larger ones cull.
+CULL_ABOVE = 32
+#: Rays per group (8×8 pixels when rays come in `coherent_order`).
+GROUP = 64
+#: Rays per chunk of the culled loops.
+CHUNK = 2048
+_ANGLE_SLACK = 1e-3
+_RADIUS_SLACK = 1e-4
+
+_BRUTE = [False]
+
+
+def culls(n: int) -> bool:
+    """Whether scenes of `n` spheres are culled (decided when a render is compiled)."""
+    return n > CULL_ABOVE and not _BRUTE[0]
+
+
+@contextlib.contextmanager
+def brute_force():
+    """Within this block, renders test every ray against every sphere whatever the
+    scene's size (to compare with culling: tests, `rtjax bench --scale`). JAX's compile
+    caches are cleared on entry and exit (compiled renders do not know this switch)."""
+    _BRUTE[0] = True
+    jax.clear_caches()
+    try:
+        yield
+    finally:
+        _BRUTE[0] = False
+        jax.clear_caches()
+
+
+def capacity(n: int) -> int:
+    """Candidate spheres per group of rays, and per cell of a light's grid (static, ≤ 32)."""
+    return min(n, 32)
+
+
+def grid_side(n: int) -> int:
+    """Cells per side of a light's grid (static): about one sphere per cell."""
+    return int(min(64, max(4, round(n**0.5))))
+
+
+def coherent_order(width: int, height: int, block: int = 8):
+    """A permutation of row-major pixel indices visiting the image in `block`×`block`
+    tiles (row-major inside each): consecutive rays then form compact groups (used by
+    `render` when scenes are large enough to cull). Returns (order, inverse) as NumPy."""
+    import numpy as np
+
+    j, i = np.divmod(np.arange(width * height), width)
+    key = ((j // block) * (-(-width // block)) + i // block) * block * block + (j % block) * block + i % block
+    order = np.argsort(key, kind="stable")
+    inverse = np.empty_like(order)
+    inverse[order] = np.arange(order.size)
+    return order, inverse
+
+
+def first_k(ok, k: int):
+    """Per row of a boolean (G, N) mask: the indices of its first `k` true entries in
+    increasing order (G, k), which slots hold one, and whether the row has more."""
+    g, n = ok.shape
+    pos = jax.lax.associative_scan(jnp.add, ok.astype(jnp.int32), axis=1) - 1
+    slot = jnp.where(ok & (pos < k), pos, k)  # slot k: the overflow's bin
+    rows = jnp.broadcast_to(jnp.arange(g)[:, None], (g, n))
+    idx = jnp.zeros((g, k + 1), jnp.int32).at[rows, slot].set(jnp.broadcast_to(jnp.arange(n, dtype=jnp.int32), (g, n)))
+    count = pos[:, -1] + 1
+    return idx[:, :k], jnp.arange(k)[None, :] < count[:, None], count > k
+
+
+def _cross_norm(a, b):
+    x = a[1] * b[2] - a[2] * b[1]
+    y = a[2] * b[0] - a[0] * b[2]
+    z = a[0] * b[1] - a[1] * b[0]
+    return jnp.sqrt(x * x + y * y + z * z)
+
+
+def group_candidates(o, d, active, centers, radii, tmin, k: int):
+    """For rays grouped (3, G, T) with `active` (G, T): per group, the first `k` spheres
+    its active rays may meet (G, k), which slots are used, and whether it has more."""
+    w = active.astype(o.dtype)
+    count = jnp.sum(w, axis=-1)
+    oc = jnp.sum(o * w, axis=-1) / jnp.maximum(count, 1)  # (3, G)
+    off = o - oc[..., None]
+    rho = jnp.sqrt(jnp.max(jnp.where(active, dot(off, off), 0), axis=-1))  # (G,)
+    s = jnp.sum(d * w, axis=-1)
+    s_len = jnp.sqrt(dot(s, s))
+    axis = s / jnp.where(s_len > 0, s_len, 1)
+    angle = jnp.arctan2(_cross_norm(d, axis[..., None]), dot(d, axis[..., None]))
+    theta = jnp.max(jnp.where(active, angle, 0), axis=-1)
+    theta = jnp.where(s_len > 1e-3 * jnp.maximum(count, 1), theta + _ANGLE_SLACK, jnp.pi)
+    v = centers.T[:, None, :] - oc[:, :, None]  # (3, G, N)
+    dist2 = dot(v, v)
+    big_r = (radii[None, :] + rho[:, None]) * (1 + _RADIUS_SLACK) + tmin
+    along = dot(v, axis[:, :, None])
+    # angle(v, a) ≤ θ + β with sin β = R/|v|  ⇔  v·a ≥ |v|·cos(θ + β), for θ + β ≤ π
+    bound = jnp.cos(theta)[:, None] * jnp.sqrt(jnp.maximum(dist2 - big_r**2, 0)) - jnp.sin(theta)[:, None] * big_r
+    ok = (dist2 <= big_r**2) | (theta[:, None] >= jnp.pi / 2) | (along >= bound)
+    return first_k(ok & jnp.any(active, axis=-1)[:, None], k)
+
+
+def _pair_roots(o, d, c, r, origin, k, tmin):
+    """`_roots` for rays against candidate spheres, broadcast (o, d: (3, ...); c: (3, ...);
+    r, origin, sphere indices k: (...)): the same arithmetic per ray and sphere."""
+    f = o - c
+    b = dot(f, d)
+    l = f - b * d
+    disc = r**2 - dot(l, l)
+    meets = disc > 0
+    sq = jnp.sqrt(jnp.maximum(disc, 0))
+    near, far = -b - sq, -b + sq
+    is_origin = origin == k
+    near_ok = meets & (near > tmin) & ~is_origin
+    far_ok = meets & (far > tmin) & (~is_origin | (b < 0))
+    return near_ok, far_ok, near, far
+
+
+def _signed_nearest(near_ok, far_ok, near, far, k, axis):
+    """Along `axis` (sphere indices `k`, broadcast): the nearest valid root, signed
+    (far roots negative; +inf if none), and the first sphere that has it (0 if none).
+
+    Two plain reductions (min |t|, then the least index·2 + far among those at the
+    minimum) instead of an argmin: XLA's CPU backend runs them about 2.5× faster."""
+    signed = jnp.where(near_ok, near, jnp.where(far_ok, -far, jnp.inf))
+    a = jnp.abs(signed)
+    m = jnp.min(a, axis=axis, keepdims=True)
+    code = jnp.min(jnp.where(a == m, 2 * k + (signed < 0), jnp.iinfo(jnp.int32).max), axis=axis)
+    m = jnp.squeeze(m, axis)
+    return jnp.where(code % 2 == 1, -m, m), (code // 2).astype(jnp.int32)
+
+
+def _packed(active, p: int):
+    """Indices of the active rays first (in order), padded with p to whole chunks, and
+    how many chunks hold them."""
+    # the barrier keeps XLA from constant-folding this when `active` is known (slow compiles)
+    (order,) = jnp.nonzero(jax.lax.optimization_barrier(active), size=p, fill_value=p)
+    pad = -(-p // CHUNK) * CHUNK - p
+    if pad:
+        order = jnp.concatenate([order, jnp.full((pad,), p, order.dtype)])
+    return order, (jnp.sum(active) + CHUNK - 1) // CHUNK
+
+
+def _chunk_loop(order, chunks, body, init):
+    """body(sel, ok, carry) → carry over the chunks of packed rays (a `while_loop`)."""
+
+    def step(state):
+        i, carry = state
+        sel = jax.lax.dynamic_slice(order, (i * CHUNK,), (CHUNK,))
+        return i + 1, body(sel, sel < order.shape[0], carry)
+
+    return jax.lax.while_loop(lambda s: s[0] < chunks, step, (jnp.zeros((), chunks.dtype), init))[1]
+
+
+def culled_nearest(o, d, centers, radii, origin, tmin, exclude=None, active=None):
+    """`nearest` (inputs already without gradient) through culling: the same answer for
+    every active ray; inactive rays get "no hit"."""
+    n, p = centers.shape[0], o.shape[1]
+    k = capacity(n)
+    if active is None:
+        active = jnp.ones((p,), bool)
+    if exclude is None:
+        exclude = jnp.full((p,), -1, jnp.int32)
+    order, chunks = _packed(active, p)
+    every = jnp.arange(n, dtype=jnp.int32)
+    g = CHUNK // GROUP
+
+    def body(sel, ok, carry):
+        t_out, idx_out = carry
+        at = jnp.minimum(sel, p - 1)
+        oc, dc, org, exc = o[:, at], d[:, at], origin[at], exclude[at]
+
+        def all_spheres(_):
+            near_ok, far_ok, near, far = _pair_roots(
+                oc[:, None, :], dc[:, None, :], centers.T[:, :, None], radii[:, None], org[None, :], every[:, None], tmin)
+            keep = exc[None, :] != every[:, None]
+            return _signed_nearest(near_ok & keep, far_ok & keep, near, far, every[:, None], 0)
+
+        def grouped(cv):
+            cand, valid = cv
+            kk = cand[..., None]  # (G, K, 1)
+            near_ok, far_ok, near, far = _pair_roots(
+                oc.reshape(3, g, 1, GROUP), dc.reshape(3, g, 1, GROUP), jnp.moveaxis(centers[cand], -1, 0)[..., None],
+                radii[cand][..., None], org.reshape(g, 1, GROUP), kk, tmin)
+            keep = valid[..., None] & (exc.reshape(g, 1, GROUP) != kk)
+            t, idx = _signed_nearest(near_ok & keep, far_ok & keep, near, far, kk, 1)
+            return t.reshape(CHUNK), idx.reshape(CHUNK)
+
+        cand, valid, over = group_candidates(oc.reshape(3, g, GROUP), dc.reshape(3, g, GROUP), ok.reshape(g, GROUP),
+                                             centers, radii, tmin, k)
+        t, idx = jax.lax.cond(jnp.any(over), all_spheres, grouped, (cand, valid))
+        idx = jnp.where(jnp.isfinite(t), idx, 0)  # no root: sphere 0, as over all spheres
+        return t_out.at[sel].set(t, mode="drop"), idx_out.at[sel].set(idx, mode="drop")
+
+    init = (jnp.full((p,), jnp.inf, o.dtype), jnp.zeros((p,), jnp.int32))
+    t, idx = _chunk_loop(order, chunks, body, init)
+    return jnp.abs(t), idx, t < 0
+
+
+class LightGrid(NamedTuple):
+    """Spheres binned by their shadow's footprint on the plane ⊥ to a parallel light."""
+
+    light: Float[Array, " 3"]  # unit, toward the light: every shadow ray's direction
+    e1: Float[Array, " 3"]
+    e2: Float[Array, " 3"]
+    lo: Float[Array, " 2"]  # the grid's corner (u, v)
+    cell: Float[Array, " 2"]  # cell sides
+    cand: Int[Array, "c k"]  # per cell, the spheres whose disc may cover it, increasing
+    valid: Bool[Array, "c k"]
+    over: Bool[Array, ""]  # some cell covers more spheres than it lists
+
+
+def light_grid(light, centers, radii, tmin) -> LightGrid:
+    """Bin the spheres' discs seen along `light` (unit) on `grid_side(n)`² cells."""
+    light, centers, radii = jax.lax.stop_gradient((light, centers, radii))
+    n = centers.shape[0]
+    side = grid_side(n)
+    use_z = jnp.abs(light[2]) < 0.9
+    e1 = normalize(jnp.cross(light, jnp.where(use_z, jnp.array([0.0, 0, 1], light.dtype), jnp.array([1.0, 0, 0], light.dtype))))
+    e2 = jnp.cross(light, e1)
+    uv = jnp.stack([centers @ e1, centers @ e2])  # (2, N)
+    big_r = radii * (1 + _RADIUS_SLACK) + tmin
+    lo = jnp.min(uv - big_r, axis=1)
+    cell = (jnp.max(uv + big_r, axis=1) - lo) / side
+    mid = lo[:, None] + (jnp.arange(side, dtype=lo.dtype) + 0.5)[None, :] * cell[:, None]  # (2, S)
+    gap = jnp.maximum(jnp.abs(uv[:, None, :] - mid[:, :, None]) - cell[:, None, None] / 2, 0)  # (2, S, N)
+    # a disc overlaps cell (i, j) iff its centre is within R of the cell's rectangle
+    ok = gap[0][:, None, :] ** 2 + gap[1][None, :, :] ** 2 <= big_r**2  # (S, S, N)
+    cand, valid, over = first_k(ok.reshape(side * side, n), capacity(n))
+    return LightGrid(light, e1, e2, lo, cell, cand, valid, jnp.any(over))
+
+
+def _cell_of(grid: LightGrid, o):
+    side = int(round(grid.cand.shape[0] ** 0.5))  # static: the grid is side × side cells
+    i = jnp.clip(jnp.floor((dot(o, grid.e1[:, None]) - grid.lo[0]) / grid.cell[0]), 0, side - 1).astype(jnp.int32)
+    j = jnp.clip(jnp.floor((dot(o, grid.e2[:, None]) - grid.lo[1]) / grid.cell[1]), 0, side - 1).astype(jnp.int32)
+    return i * side + j
+
+
+def culled_transmission(o, grid: LightGrid, centers, radii, origin, tmin, factor, skip=None, active=None):
+    """`transmission` along `grid.light` through the grid: each active ray tests the
+    spheres listed for its cell (the same factors met; inactive rays get 1)."""
+    p = o.shape[1]
+    if active is None:
+        active = jnp.ones((p,), bool)
+    o_sg, centers_sg, radii_sg = jax.lax.stop_gradient((o, centers, radii))
+    cells = _cell_of(grid, o_sg)
+    table = jnp.concatenate([centers_sg, radii_sg[:, None]], axis=1)[grid.cand]  # (C, K, 4): per cell, its spheres
+    k = grid.cand.shape[1]
+    bit = (jnp.uint32(1) << jnp.arange(k, dtype=jnp.uint32))
+    light = grid.light[:, None]
+
+    def body(sel, ok, bits):
+        at = jnp.minimum(sel, p - 1)
+        c = cells[at]
+        sph, cand, valid = table[c], grid.cand[c], grid.valid[c]  # (CHUNK, K, ·): row gathers
+        oc = o_sg[:, at][:, :, None]
+        _, blocked, _, _ = _pair_roots(oc, light[:, :, None], jnp.moveaxis(sph[..., :3], -1, 0), sph[..., 3],
+                                       origin[at][:, None], cand, tmin)
+        blocked = blocked & valid
+        if skip is not None:
+            blocked = blocked & (skip[at][:, None] != cand)
+        word = jnp.sum(jnp.where(blocked, bit, jnp.uint32(0)), axis=1, dtype=jnp.uint32)
+        return bits.at[sel].set(word, mode="drop")
+
+    def listed(_):
+        order, chunks = _packed(active, p)
+        bits = _chunk_loop(order, chunks, body, jnp.zeros((p,), jnp.uint32))
+        blocked = (bits[:, None] & bit) != 0  # (P, K)
+        return jnp.prod(jnp.where(blocked, factor[grid.cand][cells], 1), axis=1)
+
+    def all_spheres(_):
+        d = jnp.broadcast_to(light, o.shape)
+        _, blocked, _, _ = _roots(o_sg, d, centers_sg, radii_sg, origin, tmin)
+        if skip is not None:
+            blocked = blocked & (skip[None, :] != jnp.arange(centers.shape[0])[:, None])
+        return jnp.prod(jnp.where(blocked, factor[:, None], 1), axis=0)
+
+    return jax.lax.cond(grid.over, all_spheres, listed, None)

@@ -31,18 +31,23 @@ class Material(NamedTuple):
     shadow_factor: Float[Array, " n"]  # kt² for glass, 0 for the rest
     lights: Float[Array, "l 3"]  # unit vectors toward the lights
     tmin: Float[Array, ""]
+    grids: tuple = ()  # per light, its shadow-ray grid (large scenes, `spheres.light_grid`)
 
 
 def prepare(s: Structure, p: Params) -> Material:
     opaque = jnp.asarray(s.mask(OPAQUE))
     glass = jnp.asarray(s.mask(GLASS))
+    lights = normalize(p.light_dirs, axis=-1)
+    tmin = spheres.tmin_for(spheres.scene_scale(p.centers, p.radii, p.eye))
+    grids = tuple(spheres.light_grid(l, p.centers, p.radii, tmin) for l in lights) if spheres.culls(s.n_spheres) else ()
     return Material(
         diffuse=p.diffuse * opaque[:, None],
         ks=p.ks * ~jnp.asarray(s.mask(MIRROR)),
         beta=p.beta,
         shadow_factor=jnp.where(glass, p.kt**2, 0),
-        lights=normalize(p.light_dirs, axis=-1),
-        tmin=spheres.tmin_for(spheres.scene_scale(p.centers, p.radii, p.eye)),
+        lights=lights,
+        tmin=tmin,
+        grids=grids,
     )
 
 
@@ -65,10 +70,11 @@ def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, soft
     idx = jnp.maximum(hit.index, 0)
     d = surface_colour(s, p, m, idx, hit.normal_out)
     ks, beta = m.ks[idx], m.beta[idx]
-    for light, colour in zip(m.lights, p.light_colors):
+    for i, (light, colour) in enumerate(zip(m.lights, p.light_colors)):
         if soft is None:
             ray = jnp.broadcast_to(light[:, None], n.shape)
-            vis = spheres.transmission(hit.point, ray, p.centers, p.radii, hit.index, m.tmin, m.shadow_factor)
+            vis = spheres.transmission(hit.point, ray, p.centers, p.radii, hit.index, m.tmin, m.shadow_factor,
+                                       active=hit.live, grid=m.grids[i] if m.grids else None)
         else:
             vis = edges.soft_shadow(hit, light, p.centers, p.radii, m.tmin, m.shadow_factor, *soft)
         nl, cos_g = phong_angles(n, v, light)
@@ -124,7 +130,7 @@ def segment(
     Returns the next rays, their differentials (or None) and this segment's hit.
     """
     o, d = rays.o, rays.d
-    hit = spheres.Hit(o, d, p.centers, p.radii, rays.origin, m.tmin, *(toggles or (None, None)))
+    hit = spheres.Hit(o, d, p.centers, p.radii, rays.origin, m.tmin, *(toggles or (None, None)), active=rays.weight > 0)
     entering = hit.entering
     n = jnp.where(entering, hit.normal_out, -hit.normal_out)
     moves = None if diff is None else edges.hit_motion(hit, o, d, diff)
