@@ -90,6 +90,31 @@ def _plan(deck, args) -> list[tuple[object, str]]:
     return plan
 
 
+def _devices(text: str) -> int | str:
+    if text.strip().lower() == "all":
+        return "all"
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of devices or 'all', found {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a number ≥ 1 or 'all', found {value}")
+    return value
+
+
+def _start_distributed(args) -> None:
+    """--distributed: join a multi-host run (`jax.distributed.initialize`, configured by
+    the environment: JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, JAX_PROCESS_ID, or a
+    cluster's own such as Slurm's) before anything else touches JAX."""
+    if getattr(args, "distributed", False):
+        from .batch import init_distributed
+
+        try:
+            init_distributed()
+        except (RuntimeError, ValueError) as e:
+            raise RtjaxError(f"--distributed: {_one_line(e)[:300]}") from None
+
+
 def cmd_render(args) -> int:
     from .deck import _show, load_deck
 
@@ -101,27 +126,43 @@ def cmd_render(args) -> int:
         import jax
 
         jax.config.update("jax_enable_x64", True)
-    from .images import save_image, to_uint8
-    from .render import render
+    import jax
 
-    options = {"depth": args.depth, "spp": args.spp, "dtype": args.dtype, "edges": args.edges}
-    for frame, path in plan:
+    from .batch import plan_batches, render_chunk, resolve_devices
+    from .images import save_image, to_uint8
+
+    n_devices = len(resolve_devices(args.devices))
+    writer = jax.process_index() == 0  # several hosts: every process renders, the first one writes
+    options = {"depth": args.depth, "spp": args.spp, "dtype": args.dtype, "edges": args.edges, "devices": args.devices}
+    # Frames sharing a structure render together (one batched call per chunk); frames are
+    # still written and reported in deck order, each with its share of its call's time.
+    scenes = [frame.scene for frame, _ in plan]
+    chunks = plan_batches(scenes, n_devices, args.batch)
+    chunk_of = {i: c for c, chunk in enumerate(chunks) for i in chunk}
+    ready: dict[int, tuple[object, float]] = {}
+    for i, (frame, path) in enumerate(plan):
         try:
-            start = time.perf_counter()
-            image = render(frame.scene, **options)
-            image.block_until_ready()
-            elapsed = time.perf_counter() - start
+            if i not in ready:
+                chunk = chunks[chunk_of[i]]
+                start = time.perf_counter()
+                images = render_chunk([scenes[j] for j in chunk], **options)
+                jax.block_until_ready(images)
+                share = (time.perf_counter() - start) / len(chunk)
+                ready.update({j: (image, share) for j, image in zip(chunk, images)})
+            image, elapsed = ready.pop(i)
             # Clamp, round and refuse non-finite values before anything touches the disk.
             pixels = to_uint8(image)
-            folder = os.path.dirname(path)
-            if folder:
-                os.makedirs(folder, exist_ok=True)
-            save_image(path, pixels, assignment_order=args.assignment_order)
+            del image
             written = [path]
             if args.png and not path.lower().endswith(".png"):
-                preview = os.path.splitext(path)[0] + ".png"
-                save_image(preview, pixels)
-                written.append(preview)
+                written.append(os.path.splitext(path)[0] + ".png")
+            if writer:
+                folder = os.path.dirname(path)
+                if folder:
+                    os.makedirs(folder, exist_ok=True)
+                save_image(path, pixels, assignment_order=args.assignment_order)
+                if len(written) > 1:
+                    save_image(written[1], pixels)
         except RtjaxError as e:
             raise DeckError(deck.path, frame.line, f"rend {_show(frame.output)}: {e}") from None
         except OSError as e:
@@ -135,7 +176,8 @@ def cmd_render(args) -> int:
             detail = _one_line(e)[:200]
             raise DeckError(deck.path, frame.line, f"rend {_show(frame.output)}: out of memory ({detail})") from None
         s = frame.scene.structure
-        print(f"{' + '.join(written)}  {s.width}x{s.height}  {elapsed:.2f} s", flush=True)
+        if writer:
+            print(f"{' + '.join(written)}  {s.width}x{s.height}  {elapsed:.2f} s", flush=True)
     return 0
 
 
@@ -167,6 +209,8 @@ class _Progress:
             return
         text = (f"step {row['step']:3d}  {row['width']:4d} px  loss {row['loss']:.4e}  "
                 f"rms {row['rmse_levels']:.3g} levels  {row['seconds']:.2f} s")
+        if "active" in row:  # a multi-start fit: the leading start, and how many are still going
+            text += f"  start {row['start']}, {row['active']} going"
         if self.tty:
             done = int(30 * row["step"] / self.max_steps)
             print(f"\r[{'#' * done}{'.' * (30 - done)}] {text}", end="", flush=True)
@@ -194,28 +238,38 @@ def cmd_fit(args) -> int:
     out = args.output or os.path.splitext(os.path.basename(args.deck))[0] + "_fitted.dat"
     outdir, stem = os.path.dirname(out) or ".", os.path.splitext(os.path.basename(out))[0]
     progress = _Progress(args.max_steps, args.quiet)
+    options = dict(
+        spheres=args.spheres,
+        solver=args.solver,
+        max_steps=args.max_steps,
+        levels=args.levels if args.levels is None or len(args.levels) > 1 else args.levels[0],
+        edges=args.edges,
+        polish=args.polish or None,
+        loss=args.loss,
+        loss_scale=args.loss_scale,
+        nuisance=args.nuisance.split(",") if args.nuisance else (),
+        mask=args.mask,
+        assignment_order=args.assignment_order,
+        callback=progress,
+    )
+    several = args.starts > 1 or args.devices != 1
     try:
-        result = fitting.fit(
-            frame.scene,
-            args.target,
-            args.free,
-            spheres=args.spheres,
-            solver=args.solver,
-            max_steps=args.max_steps,
-            levels=args.levels if args.levels is None or len(args.levels) > 1 else args.levels[0],
-            edges=args.edges,
-            polish=args.polish or None,
-            loss=args.loss,
-            loss_scale=args.loss_scale,
-            nuisance=args.nuisance.split(",") if args.nuisance else (),
-            mask=args.mask,
-            assignment_order=args.assignment_order,
-            callback=progress,
-        )
+        if several:
+            multi = fitting.fit_multistart(frame.scene, args.target, args.free, starts=args.starts, seed=args.seed,
+                                           spread=args.spread, devices=args.devices, **options)
+            result = multi.best
+        else:
+            result = fitting.fit(frame.scene, args.target, args.free, **options)
     finally:
         progress.close()
     paths = save_outputs(result, outdir, stem, args.deck, args.target, image_name=f"{stem}.sunimg")
+    if several:
+        from fitting.multistart import add_to_report, summary_line
+
+        add_to_report(paths["report"], multi)
     print(table_text(result))
+    if several:
+        print(summary_line(multi))
     print("wrote " + ", ".join(paths[k] for k in ("deck", "image", "report", "plot")))
     return 0 if result.converged else 1
 
@@ -263,6 +317,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write Sun raster pixels R,G,B as the assignment's code did (standard viewers swap red and blue)")
     r.add_argument("--allow-any-path", action="store_true", help="allow `rend` paths that are absolute or leave OUTDIR")
     r.add_argument("--allow-large", action="store_true", help=f"allow images beyond {MAX_SIDE} pixels a side")
+    r.add_argument("--devices", type=_devices, default=1, metavar="N|all",
+                   help="shard each call's pixels (or frames) over N local devices, or all of them (default 1)")
+    r.add_argument("--batch", type=_positive_int, default=None, metavar="N",
+                   help="frames sharing a structure render N at a time in one batched call; the time printed per "
+                        "frame is its call's time divided among its frames (default: as many as fit 2^21 samples "
+                        "per device; 1: frame by frame)")
+    r.add_argument("--distributed", action="store_true",
+                   help="join a multi-host run first (jax.distributed.initialize, configured by the environment); "
+                        "every process renders, the first writes")
     r.set_defaults(run=cmd_render)
 
     f = sub.add_parser("fit", help="fit a deck's parameters to a target image",
@@ -284,6 +347,14 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--frame", type=int, default=0, help="which rend frame of the deck to fit (default 0)")
     f.add_argument("--assignment-order", action="store_true", help="the target is a Sun raster file in the assignment's R,G,B order")
     f.add_argument("--quiet", action="store_true", help="no per-iteration progress")
+    f.add_argument("--starts", type=_positive_int, default=1, metavar="K",
+                   help="multi-start: K starts (the deck's and K-1 perturbed) solved in parallel, the best kept (default 1)")
+    f.add_argument("--seed", type=int, default=0, help="seed of the multi-start perturbations (default 0)")
+    f.add_argument("--spread", type=float, default=0.5,
+                   help="multi-start perturbation scale in solver units (median radii for centres, logits for colours; default 0.5)")
+    f.add_argument("--devices", type=_devices, default=1, metavar="N|all",
+                   help="shard the starts over N local devices, or all of them (default 1: vmapped on one)")
+    f.add_argument("--distributed", action="store_true", help="join a multi-host run first (jax.distributed.initialize)")
     f.set_defaults(run=cmd_fit)
 
     b = sub.add_parser("bench", help="measure speed against accuracy of each knob on a deck",
@@ -332,6 +403,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     with _interrupt_on_termination():
         try:
+            _start_distributed(args)  # before anything (a deck's arrays included) starts JAX
             return args.run(args)
         except RtjaxError as e:
             print(_one_line(e), file=sys.stderr)

@@ -1,0 +1,372 @@
+"""Multi-start fitting: K perturbed starts solved in parallel, the best kept.
+
+A least-squares fit of a scene to an image is local: a start too far from the truth
+(a sphere on the wrong side of another, a light from the wrong side) settles in another
+basin. `fit_multistart` perturbs the start K − 1 times in the solver's own coordinates
+(start 0 is the start as given), and steps all K solves together: the solver's step is
+`equinox.filter_vmap`-ped over the starts, so one jit-compiled call advances every
+start (one batched render and Jacobian for all of them), and with `devices` the starts
+are sharded over a `jax.sharding.Mesh` by `jax.shard_map` (K padded to a multiple of
+the device count). Each start keeps its own best point, stopping rules and result, as
+`fitting.fit` does for one; a start that has stopped is frozen while the others go on.
+The result is the start with the lowest final loss, and how many starts converged.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jax.sharding import Mesh, PartitionSpec
+
+import rtjax
+
+from .errors import FitError
+from .objective import LOSSES, Objective, load_target, make_levels, match_size, nuisance_y0, prepare_mask, schedule_widths
+from .select import Selection
+from .solve import SOLVERS, FitResult, _message, _result_name, _Stepper
+
+AXIS = "starts"
+
+
+def _code(item) -> int:
+    return int(item._value)
+
+
+def _item(code: int):
+    """optimistix's result item for its integer code."""
+    for item in optx.RESULTS._name_to_item.values():
+        if _code(item) == int(code):
+            return item
+    return optx.RESULTS.nonlinear_divergence
+
+
+@dataclasses.dataclass
+class MultiStartResult:
+    """The kept start's fit (`best`, a `FitResult`) and what every start did."""
+
+    best: FitResult
+    index: int  # which start was kept (0: the start as given)
+    starts: int
+    losses: list[float]  # per start: its best loss on the last level
+    results: list[str]  # per start: optimistix's result name
+    start_scenes: list[rtjax.Scene]  # per start: where it began (full size)
+    fitted: list[rtjax.Scene]  # per start: where it ended
+    devices: int
+    times: dict[str, float]
+
+    @property
+    def converged(self) -> int:
+        """How many starts converged."""
+        return sum(r == "successful" for r in self.results)
+
+    @property
+    def scene(self) -> rtjax.Scene:
+        return self.best.scene
+
+    @property
+    def loss(self) -> float:
+        return self.best.loss
+
+    def table(self):
+        return self.best.table()
+
+
+def perturbed_starts(y0: dict, starts: int, spread: float, seed: int) -> dict:
+    """y0 and K − 1 copies moved by N(0, spread²) in every free coordinate, stacked
+    (K, ...). In the solver's coordinates a unit is: the scene's median radius for
+    centres, eye and reference point; a logit for colours, ks, kt, ke; a factor e for
+    radii, exponents, n − 1; about a radian for light directions."""
+    rng = np.random.default_rng(seed)
+    leaves, tree = jax.tree.flatten(y0)
+    out = []
+    for a in leaves:
+        a = np.asarray(a)
+        noise = rng.normal(0.0, spread, (starts - 1,) + a.shape)
+        out.append(jnp.asarray(np.concatenate([a[None], a[None] + noise]), a.dtype))
+    return jax.tree.unflatten(tree, out)
+
+
+class _Parallel:
+    """`_Stepper`'s init/step/loss over a leading axis of starts: vmapped, and with a
+    mesh, each device steps its own share of the starts (`shard_map`)."""
+
+    def __init__(self, stepper: _Stepper, mesh: Mesh | None):
+        self.stepper, self.mesh = stepper, mesh
+        self.init = eqx.filter_jit(self._init)
+        self.step = eqx.filter_jit(self._step)
+        self.loss = eqx.filter_jit(self._loss)
+        self.keep = eqx.filter_jit(_select)
+
+    def _over_starts(self, fn, batched, shared):
+        """fn(batched..., shared...) vmapped over the starts of `batched`, sharded over
+        the mesh's devices; non-array parts (the solver's static state) pass through."""
+        dyn, static = eqx.partition(batched, eqx.is_array)
+        out_static = []
+
+        def local(dyn, shared):
+            vmapped = eqx.filter_vmap(lambda b: fn(*eqx.combine(b, static), *shared))
+            d, s = eqx.partition(vmapped(dyn), eqx.is_array)
+            out_static.append(s)
+            return d
+
+        if self.mesh is None:
+            d = local(dyn, shared)
+        else:
+            d = jax.shard_map(local, mesh=self.mesh, in_specs=(PartitionSpec(AXIS), PartitionSpec()),
+                              out_specs=PartitionSpec(AXIS), check_vma=False)(dyn, shared)
+        return eqx.combine(d, out_static[0])
+
+    def _init(self, ys, samples):
+        return self._over_starts(lambda y, args: self.stepper._init(y, args), (ys,), (samples,))
+
+    def _step(self, ys, states, samples, active):
+        def one(y, state, active, args):
+            y2, state2, done, result, loss = self.stepper._step(y, state, args)
+            y2, state2 = _select(active, (y2, state2), (y, state))
+            return y2, state2, done, result._value if hasattr(result, "_value") else result, loss
+
+        return self._over_starts(one, (ys, states, active), (samples,))
+
+    def _loss(self, ys, samples):
+        return self._over_starts(lambda y, args: self.stepper.loss(y, args), (ys,), (samples,))
+
+
+def _select(mask, new, old):
+    """Per start (mask's leading axis or a scalar), `new` where mask else `old` (arrays only)."""
+
+    def pick(a, b):
+        if not eqx.is_array(a):
+            return a
+        m = jnp.reshape(mask, jnp.shape(mask) + (1,) * (jnp.ndim(a) - jnp.ndim(mask)))
+        return jnp.where(m, a, b)
+
+    return jax.tree.map(pick, new, old)
+
+
+def fit_multistart(
+    scene: rtjax.Scene,
+    target,
+    free: str | Sequence[str] = "centers",
+    *,
+    starts: int = 4,
+    seed: int = 0,
+    spread: float = 0.5,
+    devices=None,
+    spheres: Sequence[int] | None = None,
+    solver: str = "lm",
+    max_steps: int = 30,
+    levels: int | Sequence[int] | None = None,
+    edges: float | Sequence[float] | None = None,
+    polish: float | None = 0.02,
+    depth: int | None = None,
+    loss: str = "cauchy",
+    loss_scale: float = 10.0,
+    mask=None,
+    nuisance: Sequence[str] = (),
+    rtol: float = 1e-5,
+    atol: float = 1e-7,
+    jac: str | None = None,
+    assignment_order: bool = False,
+    callback: Callable[[dict], None] | None = None,
+) -> MultiStartResult:
+    """`fitting.fit` from `starts` starts in parallel; the one with the lowest final loss
+    is kept (`result.best`, a `FitResult`), `result.converged` says how many converged.
+
+    starts: K; start 0 is `scene` as given, the others are perturbed by N(0, spread²)
+      in the solver's coordinates (`perturbed_starts`), drawn from `seed`.
+    devices: None (one device: the starts are vmapped), an int, "all", or a list of
+      devices: the starts are sharded over them (`rtjax.device_mesh`).
+    Other options as `fitting.fit`. The iteration count is shared: each iteration
+    steps every start that has not stopped. `callback` gets one row per iteration,
+    for the start with the lowest loss so far, with `active` (starts still going).
+    """
+    if solver not in SOLVERS:
+        raise FitError(f"unknown solver {solver!r}; choose from {', '.join(SOLVERS)}")
+    if loss not in LOSSES:
+        raise FitError(f"unknown loss {loss!r}; choose from {', '.join(LOSSES)}")
+    if int(max_steps) < 1:
+        raise FitError(f"max_steps must be ≥ 1, not {max_steps}")
+    if int(starts) < 1:
+        raise FitError(f"starts must be ≥ 1, not {starts}")
+    if not (spread >= 0 and math.isfinite(spread)):
+        raise FitError(f"spread must be a finite number ≥ 0, not {spread}")
+    starts = int(starts)
+    try:
+        mesh = rtjax.device_mesh(devices)
+    except rtjax.RtjaxError as e:
+        raise FitError(str(e)) from None
+    if mesh is not None:
+        mesh = Mesh(mesh.devices, (AXIS,))
+    n_dev = 1 if mesh is None else mesh.devices.size
+    t_start = time.perf_counter()
+
+    # the same set-up as `fit`
+    target = load_target(target, assignment_order=assignment_order)
+    full = match_size(scene, target)
+    selection = Selection(full, free, spheres)
+    y = {"scene": selection.y0()}
+    dtype = jnp.result_type(full.params.centers)
+    if nuisance:
+        y["nuisance"] = nuisance_y0(nuisance, jax.tree_util.tree_leaves(y["scene"])[0].dtype)
+    if jac is None:
+        jac = "bwd" if selection.size() > 200 else "fwd"
+    widths = schedule_widths(full.structure.width, levels)
+    given = [1.0] if edges is None else [float(e) for e in np.ravel(edges)]
+    if not given or min(given) <= 0:
+        raise FitError(f"edge widths must be > 0, not {edges}")
+    per_level = [given[min(i, len(given) - 1)] for i in range(len(widths))]
+    if polish:
+        widths, per_level = widths + [widths[-1]], per_level + [float(polish)]
+    pyramid = make_levels(target, prepare_mask(mask, *target.shape[:2]), widths, per_level, dtype)
+    objective = Objective(selection, depth, loss, loss_scale)
+    run = _Parallel(_Stepper(objective, SOLVERS[solver](rtol, atol), solver, jac), mesh)
+
+    # K starts, padded to a multiple of the device count with copies that never step
+    padded = -(-starts // n_dev) * n_dev
+    ys = perturbed_starts(y, starts, spread, seed)
+    if padded > starts:
+        ys = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], padded - starts, axis=0)]), ys)
+    real = np.arange(padded) < starts
+    y_first = jax.tree.map(lambda a: a, ys)
+
+    histories: list[list[dict]] = [[] for _ in range(starts)]
+    results = np.full(padded, _code(optx.RESULTS.successful), np.int32)
+    levelled = np.zeros(padded, bool)
+    best_loss = np.full(padded, math.inf)
+    steps = 0
+    for level, (width, samples) in enumerate(zip(widths, pyramid)):
+        final = level == len(widths) - 1
+        coarse = not final
+        share = 2 if level == 0 else len(widths) - level
+        budget = max_steps - steps if final else max(1, (max_steps - steps) // share)
+        states = run.init(ys, samples)
+        best_y = ys
+        best_loss = np.asarray(run.loss(ys, samples), np.float64)
+        stopped = ~real.copy()
+        done = np.zeros(padded, bool)
+        stalled = np.zeros(padded, int)
+        levelled[:] = False
+        results[real] = _code(optx.RESULTS.successful)
+        n = 0
+        for n in range(1, budget + 1):
+            t0 = time.perf_counter()
+            active = ~stopped
+            ys, states, done_now, result_now, loss_now = run.step(ys, states, samples, jnp.asarray(active))
+            loss_now = np.asarray(loss_now, np.float64)
+            done_now, result_now = np.asarray(done_now, bool), np.asarray(result_now, np.int32)
+            seconds = time.perf_counter() - t0
+            finite = np.isfinite(loss_now)
+            diverged = active & ~finite
+            results[diverged] = _code(optx.RESULTS.nonlinear_divergence)
+            ok = active & finite
+            stalled = np.where(ok, np.where(loss_now > best_loss * 0.99, stalled + 1, 0), stalled)
+            better = ok & (loss_now < best_loss)
+            if better.any():
+                best_y = run.keep(jnp.asarray(better), ys, best_y)
+                best_loss = np.where(better, loss_now, best_loss)
+            finished = ok & done_now
+            results[finished] = result_now[finished]
+            stop = diverged | finished
+            if coarse:
+                stop |= ok & (stalled >= 2)
+            else:
+                flat = ok & ~finished & (stalled >= 4)
+                levelled |= flat
+                results[flat] = _code(optx.RESULTS.successful)
+                stop |= flat
+            done |= diverged | finished | (levelled & ok)
+            stopped |= stop
+            elapsed = time.perf_counter() - t_start
+            for k in np.flatnonzero(active[:starts]):
+                histories[k].append({
+                    "step": steps + n, "width": width, "loss": float(loss_now[k]), "best_loss": float(best_loss[k]),
+                    "rmse_levels": math.sqrt(2 * best_loss[k]) * 255 if math.isfinite(best_loss[k]) else math.nan,
+                    "seconds": seconds, "elapsed": elapsed,
+                })
+            if callback is not None:
+                lead = int(np.argmin(np.where(real, best_loss, math.inf)))
+                row = dict(histories[lead][-1]) if histories[lead] and histories[lead][-1]["step"] == steps + n else {
+                    "step": steps + n, "width": width, "loss": float(loss_now[lead]), "best_loss": float(best_loss[lead]),
+                    "rmse_levels": math.sqrt(2 * best_loss[lead]) * 255, "seconds": seconds, "elapsed": elapsed}
+                row.update(start=lead, active=int((~stopped[:starts]).sum()))
+                callback(row)
+            if stopped.all():
+                break
+        if final:
+            unfinished = real & ~done
+            results[unfinished] = _code(optx.RESULTS.max_steps_reached)
+        steps += n
+        ys = best_y
+
+    names = [_result_name(_item(r)) for r in results[:starts]]
+    losses = [float(x) for x in best_loss[:starts]]
+    order = np.where(np.isfinite(losses), losses, math.inf)
+    index = int(np.argmin(order))
+    pick = jax.tree.map(lambda a: a[index], ys)
+    structure = scene.structure.replace(width=full.structure.width, height=full.structure.height)
+    fitted = [rtjax.Scene(structure, selection.params(jax.tree.map(lambda a: a[k], ys)["scene"])) for k in range(starts)]
+    begun = [rtjax.Scene(structure, selection.params(jax.tree.map(lambda a: a[k], y_first)["scene"])) for k in range(starts)]
+    name = names[index]
+    total = time.perf_counter() - t_start
+    history = histories[index]
+    best = FitResult(
+        scene=fitted[index],
+        start=begun[index],
+        selection=selection,
+        y=pick,
+        history=history,
+        result=name,
+        message=(("converged: the loss levelled off" if levelled[index] else "converged") if name == "successful"
+                 else _message(_item(results[index]))),
+        converged=name == "successful",
+        steps=steps,
+        nuisance={k: float(jnp.exp(v)) for k, v in pick.get("nuisance", {}).items()},
+        times={"total": total, "first_step": history[0]["seconds"] if history else math.nan},
+        solver=solver,
+    )
+    return MultiStartResult(best=best, index=index, starts=starts, losses=losses, results=names, start_scenes=begun,
+                            fitted=fitted, devices=n_dev, times={"total": total})
+
+
+def summary_line(result: MultiStartResult) -> str:
+    """One line: starts, devices, how many converged, which was kept."""
+    devices = f"{result.devices} device{'s' if result.devices != 1 else ''}"
+    return (f"multi-start: {result.starts} starts on {devices}, {result.converged} of {result.starts} converged; "
+            f"kept start {result.index} (loss {result.losses[result.index]:.4e}, {result.results[result.index]})")
+
+
+def report_entry(result: MultiStartResult) -> dict:
+    """The multi-start part of the JSON report."""
+    return {
+        "starts": result.starts,
+        "devices": result.devices,
+        "converged": result.converged,
+        "kept": result.index,
+        "losses": result.losses,
+        "results": result.results,
+        "start_values": [result.best.selection.values(s.params) for s in result.start_scenes],
+        "seconds": result.times["total"],
+    }
+
+
+def add_to_report(path: str, result: MultiStartResult) -> None:
+    """Add `report_entry` to a fit's JSON report (written by `report.save_outputs`)."""
+    import json
+
+    from .report import write_json
+
+    with open(path) as f:
+        data = json.load(f)
+    entry = report_entry(result)
+    entry["start_values"] = [{k: np.asarray(v).tolist() if not isinstance(v, tuple) else "texels"
+                              for k, v in values.items()} for values in entry["start_values"]]
+    data["multistart"] = entry
+    write_json(path, data)
