@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jax.sharding import Mesh, PartitionSpec
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 import rtjax
 
@@ -96,7 +96,7 @@ def perturbed_starts(y0: dict, starts: int, spread: float, seed: int) -> dict:
 
 class _Parallel:
     """`_Stepper`'s init/step/loss over a leading axis of starts: vmapped, and with a
-    mesh, each device steps its own share of the starts (`shard_map`)."""
+    mesh, each device steps its own share of the starts."""
 
     def __init__(self, stepper: _Stepper, mesh: Mesh | None):
         self.stepper, self.mesh = stepper, mesh
@@ -106,23 +106,19 @@ class _Parallel:
         self.keep = eqx.filter_jit(_select)
 
     def _over_starts(self, fn, batched, shared):
-        """fn(batched..., shared...) vmapped over the starts of `batched`, sharded over
-        the mesh's devices; non-array parts (the solver's static state) pass through."""
-        dyn, static = eqx.partition(batched, eqx.is_array)
-        out_static = []
+        """fn(batched..., shared...) vmapped over the starts of `batched`; with a mesh,
+        every array with a starts axis is laid out over the devices (`NamedSharding`,
+        the starts axis split), so that XLA's partitioner gives each device its own
+        starts. (Not `shard_map`: the solver's state records the structure of its
+        arrays, which a manual region changes.)"""
+        if self.mesh is not None:
+            batched = self._spread(batched)
+        out = eqx.filter_vmap(lambda b: fn(*b, *shared))(batched)
+        return out if self.mesh is None else self._spread(out)
 
-        def local(dyn, shared):
-            vmapped = eqx.filter_vmap(lambda b: fn(*eqx.combine(b, static), *shared))
-            d, s = eqx.partition(vmapped(dyn), eqx.is_array)
-            out_static.append(s)
-            return d
-
-        if self.mesh is None:
-            d = local(dyn, shared)
-        else:
-            d = jax.shard_map(local, mesh=self.mesh, in_specs=(PartitionSpec(AXIS), PartitionSpec()),
-                              out_specs=PartitionSpec(AXIS), check_vma=False)(dyn, shared)
-        return eqx.combine(d, out_static[0])
+    def _spread(self, tree):
+        split = NamedSharding(self.mesh, PartitionSpec(AXIS))
+        return jax.tree.map(lambda a: jax.lax.with_sharding_constraint(a, split) if eqx.is_array(a) else a, tree)
 
     def _init(self, ys, samples):
         return self._over_starts(lambda y, args: self.stepper._init(y, args), (ys,), (samples,))

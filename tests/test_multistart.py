@@ -1,0 +1,140 @@
+"""Multi-start fitting (`fitting.fit_multistart`): K perturbed starts stepped together
+(vmapped on one device, sharded over four), the best kept, the converged ones counted.
+
+One fit in-process (3 starts, one device) and the same fit with 4 starts over 4 forced
+host devices in a subprocess (`tests/multidevice.py fit`), run at the same time; starts
+0-2 are the same in both (start 0 as given, then the same seeded draws), so the sharded
+solves must agree with the vmapped ones.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from conftest import scene_from_text
+from test_batch import collect, launch
+
+import fitting
+import rtjax
+from rtjax import cli
+
+DECK = """
+sphe -9 0 0 8
+opaq 0.9 0.3 0.2 0.4 12
+sphe 9 4 2 7
+opaq 0.2 0.6 0.9 0.3 8
+plig 0.4 -1 0.8 220 210 200
+elig 0.25
+back 10 20 60
+eyep 0 -50 10
+refp 0 0 0
+vang 60 45
+size 48
+rend truth.sunimg
+"""
+OFFSET = [[1.5, -1.0, 1.2], [-1.3, 1.0, -1.4]]
+OPTIONS = {"seed": 3, "spread": 0.4, "max_steps": 10, "polish": None}
+
+
+@pytest.fixture(scope="module")
+def truth() -> rtjax.Scene:
+    return scene_from_text(DECK)
+
+
+@pytest.fixture(scope="module")
+def runs(truth, tmp_path_factory):
+    """(one-device result, the 4-device subprocess's result)."""
+    spec = tmp_path_factory.mktemp("fit") / "spec.json"
+    spec.write_text(json.dumps({"deck": DECK, "offset": OFFSET, "options": dict(OPTIONS, starts=4)}))
+    proc = launch("fit", str(spec))  # runs while the in-process fit below does
+    try:
+        start = truth.replace(centers=np.asarray(truth.params.centers) + np.asarray(OFFSET))
+        target = np.floor(np.asarray(rtjax.render(truth)) + 0.5)
+        rows = []
+        one = fitting.fit_multistart(start, target, "centers", starts=3, callback=rows.append, **OPTIONS)
+        four = collect(proc)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    return one, four, rows, start
+
+
+def test_starts_are_the_given_one_and_seeded_perturbations(runs):
+    one, _, _, start = runs
+    assert one.starts == 3 and one.devices == 1 and len(one.losses) == len(one.results) == 3
+    begun = [np.asarray(s.params.centers, np.float64) for s in one.start_scenes]
+    assert np.allclose(begun[0], np.asarray(start.params.centers), atol=1e-5)  # start 0: as given
+    median_radius = 7.5
+    moves = [np.abs(b - begun[0]) / median_radius for b in begun[1:]]
+    assert all(0.01 < m.mean() < 1.5 for m in moves)  # ~N(0, 0.4²) median radii per coordinate
+    assert not np.allclose(begun[1], begun[2])
+    again = fitting.perturbed_starts({"c": np.zeros((2, 3), np.float32)}, 3, 0.4, 3)["c"]
+    assert again.shape == (3, 2, 3) and not np.any(np.asarray(again[0]))
+
+
+def test_best_start_kept_and_converged_counted(runs, truth):
+    one, _, rows, _ = runs
+    losses = np.asarray(one.losses)
+    assert one.index == int(np.argmin(losses))
+    assert one.loss == pytest.approx(losses.min())
+    assert one.converged == sum(r == "successful" for r in one.results)
+    assert one.best.converged == (one.results[one.index] == "successful")
+    # started 1.2-1.5 units off across the view; 10 iterations at 48 pixels across (depth,
+    # along the view, is seen only through perspective and is left loose here)
+    err = np.abs(np.asarray(one.scene.params.centers) - np.asarray(truth.params.centers))
+    assert err[:, [0, 2]].max() < 0.3, one.table()
+    # one row per batched iteration, for the leading start, with how many starts go on
+    assert rows and [r["step"] for r in rows] == list(range(1, len(rows) + 1))
+    assert all(0 <= r["active"] <= 3 and 0 <= r["start"] < 3 for r in rows)
+    assert one.best.history and one.best.history[-1]["best_loss"] == pytest.approx(one.loss)
+
+
+def test_sharded_starts_agree_with_one_device(runs):
+    one, four, _, _ = runs
+    assert four["devices"] == 4 and len(four["losses"]) == 4
+    assert four["results"][:3] == one.results
+    np.testing.assert_allclose(four["losses"][:3], one.losses, rtol=1e-3, atol=1e-9)
+    assert sum(r == "successful" for r in four["results"]) == four["converged"]
+    if four["index"] < 3:
+        assert four["index"] == one.index
+
+
+def test_cli_fit_starts_reports_how_many_converged(runs, tmp_path, capsys, monkeypatch):
+    """`rtjax fit --starts K` passes its options on and reports the count (the fit itself
+    is the one above, returned by a stand-in so as not to compile another)."""
+    one, _, _, start = runs
+    seen = {}
+
+    def stand_in(scene, target, free, **kw):
+        seen.update(kw, free=free)
+        return one
+
+    monkeypatch.setattr(fitting, "fit_multistart", stand_in)
+    deck = tmp_path / "start.dat"
+    rtjax.save_deck(str(deck), start, "truth.sunimg")
+    target = tmp_path / "target.sunimg"
+    rtjax.save_image(str(target), np.zeros((start.structure.height, start.structure.width, 3)))
+    out = tmp_path / "out" / "fitted.dat"
+    code = cli.main(["fit", str(deck), str(target), "--starts", "3", "--seed", "3", "--spread", "0.4", "--quiet", "-o", str(out)])
+    stdout = capsys.readouterr().out
+    assert code == (0 if one.best.converged else 1)
+    assert seen["starts"] == 3 and seen["seed"] == 3 and seen["spread"] == 0.4 and seen["devices"] == 1
+    line = next(x for x in stdout.splitlines() if x.startswith("multi-start:"))
+    assert f"3 starts on 1 device, {one.converged} of 3 converged; kept start {one.index}" in line
+    report = json.loads((tmp_path / "out" / "fitted.json").read_text())
+    assert report["multistart"]["starts"] == 3 and report["multistart"]["converged"] == one.converged
+    assert report["multistart"]["kept"] == one.index and len(report["multistart"]["start_values"]) == 3
+
+
+def test_bad_starts_and_devices_are_errors(truth):
+    target = np.zeros((truth.structure.height, truth.structure.width, 3))
+    with pytest.raises(fitting.FitError, match="starts must be ≥ 1"):
+        fitting.fit_multistart(truth, target, starts=0)
+    with pytest.raises(fitting.FitError, match="devices asked for"):
+        fitting.fit_multistart(truth, target, starts=2, devices=64)
+    with pytest.raises(SystemExit):
+        cli.main(["fit", "d.dat", "t.sunimg", "--starts", "0"])
+
