@@ -133,7 +133,8 @@ def cmd_render(args) -> int:
 
     n_devices = len(resolve_devices(args.devices))
     writer = jax.process_index() == 0  # several hosts: every process renders, the first one writes
-    options = {"depth": args.depth, "spp": args.spp, "dtype": args.dtype, "edges": args.edges, "devices": args.devices}
+    options = {"depth": args.depth, "spp": args.spp, "dtype": args.dtype, "edges": args.edges, "devices": args.devices,
+               "mode": args.batch_mode}
     # Frames sharing a structure render together (one batched call per chunk); frames are
     # still written and reported in deck order, each with its share of its call's time.
     scenes = [frame.scene for frame, _ in plan]
@@ -323,6 +324,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="frames sharing a structure render N at a time in one batched call; the time printed per "
                         "frame is its call's time divided among its frames (default: as many as fit 2^21 samples "
                         "per device; 1: frame by frame)")
+    r.add_argument("--batch-mode", choices=("auto", "vmap", "map"), default="auto",
+                   help="a batched call's frames: vmap (all at once), map (one after another inside the call), "
+                        "auto (default: map on a CPU, vmap on a GPU)")
     r.add_argument("--distributed", action="store_true",
                    help="join a multi-host run first (jax.distributed.initialize, configured by the environment); "
                         "every process renders, the first writes")

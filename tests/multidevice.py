@@ -56,15 +56,19 @@ def check_render(outdir: str) -> dict:
     frames = [np.asarray(rtjax.render(s)) for s in scenes]
     _, t["frame_by_frame"] = timed(lambda: [rtjax.render(s) for s in scenes])
     batched, t["batched_compile"] = timed(lambda: rtjax.render_frames(scenes))
-    out["multi_batched_1"] = [same(a, b) for a, b in zip(frames, batched)]
+    out["multi_batched_1"] = [same(a, b) for a, b in zip(frames, batched)]  # lax.map in the call (a CPU's default)
     _, t["batched"] = timed(lambda: rtjax.render_frames(scenes))
     params = rtjax.stack_params([s.params for s in scenes])
+    vmapped, t["vmap_compile"] = timed(lambda: rtjax.render_batch(scenes[0].structure, params, mode="vmap"))
+    out["multi_vmap_1"] = [same(a, b) for a, b in zip(frames, vmapped)]
+    _, t["vmap"] = timed(lambda: rtjax.render_batch(scenes[0].structure, params, mode="vmap"))
     by_frames, t["frames_4_compile"] = timed(lambda: rtjax.render_batch(scenes[0].structure, params, devices=4, split="frames"))
     out["multi_frames_4"] = [same(a, b) for a, b in zip(frames, by_frames)]
     _, t["frames_4"] = timed(lambda: rtjax.render_batch(scenes[0].structure, params, devices=4, split="frames"))
-    by_pixels, t["pixels_4_compile"] = timed(lambda: rtjax.render_batch(scenes[0].structure, params, devices=4, split="pixels"))
+    by_pixels, t["pixels_4_compile"] = timed(lambda: rtjax.render_batch(scenes[0].structure, params, devices=4, split="pixels",
+                                                                        mode="vmap"))
     out["multi_pixels_4"] = [same(a, b) for a, b in zip(frames, by_pixels)]
-    _, t["pixels_4"] = timed(lambda: rtjax.render_batch(scenes[0].structure, params, devices=4, split="pixels"))
+    _, t["pixels_4"] = timed(lambda: rtjax.render_batch(scenes[0].structure, params, devices=4, split="pixels", mode="vmap"))
 
     # `rtjax render --devices 4` writes what frame-by-frame rendering gives
     from rtjax import cli

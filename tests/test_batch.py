@@ -88,11 +88,12 @@ def test_a_parameter_sweep_is_one_batched_call():
     scene = rtjax.parse_deck(SMALL + "rend a.ras\n").frames[0].scene
     kes = np.linspace(0.0, 1.0, 5, dtype=np.float32)
     params = rtjax.stack_params([scene.replace(ke=k).params for k in kes])
-    images = np.asarray(rtjax.render_batch(scene.structure, params))
+    images = np.asarray(rtjax.render_batch(scene.structure, params, mode="vmap"))
     assert images.shape == (5, 12, 16, 3)
     for k, image in zip(kes, images):
         assert np.array_equal(image, np.asarray(rtjax.render(scene.replace(ke=k))))
     assert not np.array_equal(images[0], images[-1])
+    assert np.array_equal(np.asarray(rtjax.render_batch(scene.structure, params, mode="map")), images)
 
 
 def test_batches_are_cut_to_bound_memory():
@@ -157,9 +158,10 @@ def test_sharded_sample_deck_equals_single_device_bit_for_bit(four):
 
 def test_batched_multi_frame_deck_equals_frame_by_frame(four):
     r = four()
-    assert r["multi_batched_1"] == [True, True, True]  # vmap, one device
+    assert r["multi_batched_1"] == [True, True, True]  # one device, lax.map inside the call (a CPU's default)
+    assert r["multi_vmap_1"] == [True, True, True]  # one device, vmap
     assert r["multi_frames_4"] == [True, True, True]  # frames over 4 devices (3 padded to 4)
-    assert r["multi_pixels_4"] == [True, True, True]  # every frame's pixels over 4 devices
+    assert r["multi_pixels_4"] == [True, True, True]  # every frame's pixels over 4 devices, vmapped
 
 
 def test_cli_devices_4_writes_the_frame_by_frame_images(four):
