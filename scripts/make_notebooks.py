@@ -183,11 +183,16 @@ show(level_images[:2], titles[:2], height=3.6)
 show(level_images[2:], titles[2:], height=3.6)
 '''),
         md("""
-        Each deck's comments say what to look for: on level 1 the highlights grow
-        tighter from left to right as β grows; level 2's mirrors show the other spheres
-        and each other; level 3's glass spheres show the scene behind them upside down,
-        the more so the larger the index; on level 4 the planet, the checker ball and the
-        bands are textures, and the mirror ball at the back reflects them.
+        Each deck's comments say what to look for. Level 1: the four balls' highlights
+        grow smaller and sharper from left to right as the Phong exponent β grows (2, 10,
+        50, 400), and every ball casts a shadow. Level 2: the two large mirrors reflect
+        the red and yellow balls between them back and forth, a smaller copy in each
+        bounce. Level 3: the middle row's glass spheres go from n = 1 (no bending) to
+        2.42 (diamond), and the backdrop balls seen through them turn upside down and
+        shrink as n grows; the marble at the front right has a mirror core and shows
+        total internal reflection. Level 4: the planet, the checker ball, the bands and a
+        tiny 5 × 3 texture are texture-mapped; the glass lens shows the checker ball, and
+        the mirror ball at the back reflects the textured spheres.
 
         ## Change a parameter, render again: no recompilation
 
@@ -374,7 +379,7 @@ import fitting
 import rtjax
 
 WIDTH = 64 if QUICK else 240          # image width of truth, target and fits
-STEPS = (10, 8, 8) if QUICK else (30, 20, 25)  # iterations: centres, colours and ke, photo-like target
+STEPS = (10, 8, 6) if QUICK else (30, 20, 25)  # iterations: centres, colours and ke, photo-like target
 print(f"quick mode: {QUICK}; images {WIDTH} pixels wide; at most {STEPS} iterations")
 '''),
         code(SHOW + '''
@@ -459,11 +464,13 @@ show([img_start, img_fit, target, difference(img_start, target), difference(img_
      ["start", "fitted", "target", "|start − target| ×4", "|fitted − target| ×4"], height=2.3)
 '''),
         md("""
-        The loss falls by orders of magnitude over the iterations (the dotted lines mark
-        the pyramid levels: quarter size, half size, full size, then a short polish with
-        nearly pixel-centre edges). The difference images (white = no difference) show
-        the start's misplaced silhouettes and shadows, and what is left after the fit;
-        the table above gives each ball's remaining error in deck units.
+        Each pyramid level measures its own image (dotted lines where the width
+        changes: quarter size, half size, full size), so the loss jumps where a level
+        starts. The last level is a polish at full size with nearly pixel-centre edges
+        (same width, no marker): the steep drop late in the run is where its sharp edges
+        meet the target's. The difference images (white = no difference) show the start's
+        misplaced silhouettes and shadows, and what is left after the fit; the table
+        gives each ball's remaining error in deck units.
 
         ## 2. Colours and `ke`
 
@@ -491,8 +498,9 @@ show([img_start2, img_fit2, target, difference(img_fit2, target)],
      ["start: grey, ke 0.5", "fitted", "target", "|fitted − target| ×4"], height=2.5)
 '''),
         md("""
-        Colours enter the image almost linearly, so this fit converges in a few
-        iterations; the remaining error is what the centres' small error leaves behind.
+        Colours enter the image almost linearly: the loss falls steadily on the coarse
+        level, and the polish brings it to the level of the centres' remaining error
+        (the table compares each fitted number with the truth).
 
         ## 3. A photo-like target
 
@@ -537,7 +545,10 @@ def photograph(scene, seed=0):
     image = image + np.random.default_rng(seed).normal(0, 3, image.shape)
     pil = Image.fromarray(rtjax.to_uint8(np.clip(image, 0, 255)))
     h, w = image.shape[:2]
-    font = ImageFont.load_default(size=max(8, round(0.1 * h)))
+    try:
+        font = ImageFont.load_default(size=max(8, round(0.1 * h)))
+    except TypeError:  # Pillow before 10.1: one small bitmap font
+        font = ImageFont.load_default()
     ImageDraw.Draw(pil).text((0.97 * w, 0.97 * h), "'10 6 14", fill=(255, 140, 40), font=font, anchor="rb")
     buf = io.BytesIO()
     pil.save(buf, "JPEG", quality=75)
@@ -589,24 +600,26 @@ show([difference(model[k], photo, gain=3) for k in labels], [f"|model − photo|
         How to read this (the table above has this run's numbers):
 
         * **Without nuisance parameters** (`cauchy`) nothing in the scene can explain the
-          camera's response: the colours and `ke` take the blame, and the fitted scene
-          (first fitted image) is rendered with the photo's exposure and contrast
-          instead of its own.
+          camera's response: the colours and `ke` take the blame (errors of about a tenth
+          of the colour range), and the fitted scene (first fitted image) is rendered
+          with the photo's exposure and contrast instead of its own; the sky, whose
+          colour is not free, is left over in its `|model − photo|` map.
         * **With `gain`, `gamma` and `blur`** fitted jointly, the response is absorbed by
           the three numbers it was made with (printed beside each fit), and the scene's
-          own parameters come out near the truth. The fitted images are renders of the
-          scene alone, without the camera, and look like the truth.
+          own colours and `ke` come out within about 0.02 of the truth. The fitted images
+          are renders of the scene alone, without the camera, and look like the truth.
         * **The loss**: the date stamp is a few hundred pixels of a colour no scene
-          parameter produces. Least squares spreads their squared error over whatever
-          can reduce it — the floor's colour under the stamp first, and the camera's
-          gain; the Cauchy loss grows only logarithmically for residuals much larger
-          than its scale (10 levels), so the stamp barely pulls. Compare the floor's
-          colour error and the gain of the last two rows.
+          parameter produces. Least squares (`l2 + camera`) lets them pull on whatever
+          can reduce their squared error: the floor's colour, which lies under the
+          stamp, and the camera's gain and gamma come out further from the truth than
+          with the Cauchy loss, which grows only logarithmically for residuals much
+          larger than its scale (10 levels), so the stamp barely pulls. The balls'
+          colours, away from the stamp, are about equally good either way.
         * The losses of the three fits are different functions (and each level of the
-          pyramid measures a different image), so the convergence plot compares how
-          each fit progresses, not their values. The `|model − photo|` maps show the
-          fitted scene through the fitted camera against the photo: what remains is the
-          stamp, the JPEG blocks and the noise, which no fit removes.
+          pyramid measures a different image), so the convergence plot shows how each fit
+          progresses, not which is better. The `|model − photo|` maps show each fitted
+          scene through its fitted camera against the photo: what remains is the stamp,
+          edges softened by JPEG, and noise, which no fit removes.
 
         This is why the Cauchy loss is the default of `fitting.fit` and `rtjax fit`.
         """),
@@ -651,7 +664,7 @@ import rtjax
 from rtjax import bench
 
 if QUICK:  # small images, one timed run each, no derivative timings
-    CFG = bench.Config(ref_depth=6, ref_spp=3, depths=(0, 2), spps=(1, 2), edges=(1.0,), scales=(0.5, 1.0), repeats=1,
+    CFG = bench.Config(ref_depth=6, ref_spp=2, depths=(0,), spps=(1, 2), edges=(1.0,), scales=(0.5, 1.0), repeats=1,
                        derivatives=False, numpy=False, width=64)
 else:  # `rtjax bench --quick`: reference 8×8 samples at depth 12, derivatives timed at ¼ size
     CFG = bench.Config.quick()
@@ -676,7 +689,7 @@ def show_png(draw, *args):
         8-bit file would hold it, against the reference.
         """),
         code('''
-deck_path = str(SCENES / "ex2s3.dat")
+deck_path = os.path.relpath(SCENES / "ex2s3.dat")
 result = bench.run(deck_path, CFG, log=print)
 result["deck"] = "scenes/ex2s3.dat"
 print()
@@ -695,21 +708,33 @@ print(f"default: {1e3 * default['median_s']:.1f} ms, RMS error {default['rms_lev
 print("on the Pareto front (nothing both faster and more accurate), fastest first:", "; ".join(dict.fromkeys(front)))
 '''),
         md("""
-        Reading the plot and the table (each point is one knob moved alone; lower is more
-        accurate, left is faster):
+        Reading the plot and the table (each point is one knob moved alone from the
+        default; lower is more accurate, further left is faster):
 
-        * **depth**: depth 0 (no reflection or refraction at all) is fastest and far off;
-          the error falls quickly with depth and levels off once rays that bounce that
-          many times carry little light. Every extra segment costs about the same time.
-        * **spp**: K×K samples per pixel cost about K² times as much and take most of the
-          remaining error away: what is left against the reference at 1×1 is mostly
-          aliasing at edges.
-        * **dtype**: float64 costs time and changes next to nothing in 8-bit levels.
-        * **edges** (the silhouette-aware mode): box-filters the nearest silhouette per
-          pixel in closed form — antialiasing at edges for much less than supersampling
-          (its real purpose is derivatives through edges, used by `fitting`).
-        * **scale**: fewer pixels are faster, and the error (upsampled back to full size)
-          is large: resolution is not a knob to trade away.
+        * **depth**: depth 0 (no reflection or refraction at all) is fast and far off —
+          everything seen in the two mirrors and the three glass spheres is missing. The
+          error falls quickly over the first few segments and then stops changing: depth
+          10 (the default) and 12 have the same error on this deck.
+        * **spp**: K×K samples per pixel cost about K² times one sample and take most of
+          the remaining error away: what the default still gets wrong is mostly aliasing
+          at edges.
+        * **dtype**: float64 is slower and changes next to nothing in 8-bit levels.
+        * **edges** (the silhouette-aware mode) box-filters each pixel's nearest
+          silhouette in closed form: at 1 pixel it is antialiasing on the Pareto front,
+          between 2×2 and 4×4 supersampling in error and well below 4×4 in time;
+          narrower (0.5) leaves more aliasing, wider (2) blurs. Its purpose is
+          derivatives through edges (`fitting` renders with it); the antialiasing comes
+          with it.
+        * **scale**: fewer pixels are the fastest renders, but upsampled back to full
+          size their error is large: previews.
+
+        Under the table, derivatives are timed against a forward render of the same
+        (quarter) size: a reverse-mode gradient of a scalar costs several forward
+        renders, a forward-mode Jacobian in the 24 centre coordinates about one render
+        per coordinate, one Levenberg–Marquardt step (a Jacobian, a linear solve and the
+        solver's bookkeeping) more than that; and the NumPy float64 renderer of the
+        tests, run on the same deck, gives the speed-up of the compiled renderer on this
+        machine.
 
         The rows of the table give the figures for this run. Below, the images behind a
         few of the points: the reference, the default, and the default's difference from
@@ -840,13 +865,14 @@ plt.show()
         What the derivative images show (row by row, left to right):
 
         * **tangent ray**: growing the radius moves the outline outward over the dark
-          background: a bright ring at the silhouette, finite although one pixel's ray
-          grazes the sphere exactly;
+          background: a ring at the silhouette, strongest where the lit side meets the
+          background, finite although one pixel's ray grazes the sphere exactly;
         * **β = 10 000**: the highlight is far narrower than a pixel, and dI/dβ is zero
-          but for the one pixel that catches a trace of it, where it is of order 10⁻¹¹
-          (the table's maximum): finite where cos γ ≤ 0 and where cos γ^β underflows;
+          but for the one pixel that catches a trace of it, where it is tiny (the
+          table's maximum): finite where cos γ ≤ 0 and where cos γ^β underflows;
         * **light grazing the surface**: tilting the light away from the eye (its y
-          direction) darkens the lit side; finite on the terminator, where N·L = 0;
+          direction) darkens the lit side; finite on the terminator, where N·L = 0 (and
+          zero where the image is clamped at 255);
         * **radius 10⁻³ and 10⁵**: the same picture at scales eight orders of magnitude
           apart (the tolerances are relative to the scene's size): moving the sphere to
           the right brightens its right edge, darkens its left, and moves its highlight;
@@ -927,6 +953,22 @@ def execute(nb: nbformat.NotebookNode, *, quick: bool, timeout: int = 900, cwd: 
                 os.environ[k] = v
 
 
+def update_markdown(name: str) -> None:
+    """Text-only edits: the committed notebook's code cells and outputs stay as they are
+    (its code must equal the generator's), its markdown cells become the generator's."""
+    path = os.path.join(NOTEBOOKS, name)
+    committed, built = nbformat.read(path, as_version=4), build(name)
+    kinds = [c.cell_type for c in committed.cells]
+    if kinds != [c.cell_type for c in built.cells] or any(
+            a.source != b.source for a, b in zip(committed.cells, built.cells) if a.cell_type == "code"):
+        raise SystemExit(f"{name}: code cells changed; run it again instead of --markdown-only")
+    for a, b in zip(committed.cells, built.cells):
+        if a.cell_type == "markdown":
+            a.source = b.source
+    nbformat.write(committed, path)
+    print(f"rewrote the text cells of notebooks/{name}", flush=True)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("names", nargs="*", help="notebooks to make (prefixes such as 01; default: all)")
@@ -936,10 +978,15 @@ def main(argv=None) -> int:
     ap.add_argument("--committed", action="store_true",
                     help="execute notebooks/NAME as committed (outputs cleared) instead of the cells below")
     ap.add_argument("--timeout", type=int, default=900, help="seconds per cell (default 900)")
+    ap.add_argument("--markdown-only", action="store_true",
+                    help="rewrite only the text cells of notebooks/NAME, keeping its outputs (its code cells must be unchanged)")
     args = ap.parse_args(argv)
     names = [n for n in BUILDERS if not args.names or any(n.startswith(p) for p in args.names)]
     os.makedirs(NOTEBOOKS, exist_ok=True)
     for name in names:
+        if args.markdown_only:
+            update_markdown(name)
+            continue
         nb = nbformat.read(os.path.join(NOTEBOOKS, name), as_version=4) if args.committed else build(name)
         if args.committed:
             for cell in nb.cells:
