@@ -3,12 +3,15 @@
 A least-squares fit of a scene to an image is local: a start too far from the truth
 (a sphere on the wrong side of another, a light from the wrong side) settles in another
 basin. `fit_multistart` perturbs the start K − 1 times in the solver's own coordinates
-(start 0 is the start as given), and steps all K solves together: the solver's step is
-`equinox.filter_vmap`-ped over the starts, so one jit-compiled call advances every
-start (one batched render and Jacobian for all of them), and with `devices` the starts
-are sharded over a `jax.sharding.Mesh` by `jax.shard_map` (K padded to a multiple of
-the device count). Each start keeps its own best point, stopping rules and result, as
-`fitting.fit` does for one; a start that has stopped is frozen while the others go on.
+(start 0 is the start as given), and steps all K solves together: one jit-compiled call
+advances every start, the solver's step `equinox.filter_vmap`-ped over the starts (on
+an accelerator) or taken start after start by `lax.map` inside the call (on a CPU,
+where that is faster, see `fit_multistart`'s `mode`). With `devices`, the starts are
+laid out over a `jax.sharding.Mesh` with a `NamedSharding` that splits the starts
+axis (K padded to a multiple of the device count), so that XLA's partitioner gives
+each device its own starts. Each start keeps its own best point, stopping rules and
+result, as `fitting.fit` does for one; a start that has stopped is frozen while the
+others go on.
 The result is the start with the lowest final loss, and how many starts converged.
 """
 
@@ -95,26 +98,40 @@ def perturbed_starts(y0: dict, starts: int, spread: float, seed: int) -> dict:
 
 
 class _Parallel:
-    """`_Stepper`'s init/step/loss over a leading axis of starts: vmapped, and with a
-    mesh, each device steps its own share of the starts."""
+    """`_Stepper`'s init/step/loss over a leading axis of starts, in one compiled call:
+    `lax.map` (mode "map": one start after another, each keeping the renderer's
+    run-time skipping of finished ray segments) or `vmap` (mode "vmap": all at once);
+    with a mesh, vmapped with the starts axis laid out over the devices."""
 
-    def __init__(self, stepper: _Stepper, mesh: Mesh | None):
-        self.stepper, self.mesh = stepper, mesh
+    def __init__(self, stepper: _Stepper, mesh: Mesh | None, mode: str):
+        self.stepper, self.mesh, self.mode = stepper, mesh, mode
         self.init = eqx.filter_jit(self._init)
         self.step = eqx.filter_jit(self._step)
         self.loss = eqx.filter_jit(self._loss)
         self.keep = eqx.filter_jit(_select)
 
     def _over_starts(self, fn, batched, shared):
-        """fn(batched..., shared...) vmapped over the starts of `batched`; with a mesh,
-        every array with a starts axis is laid out over the devices (`NamedSharding`,
-        the starts axis split), so that XLA's partitioner gives each device its own
-        starts. (Not `shard_map`: the solver's state records the structure of its
-        arrays, which a manual region changes.)"""
+        """fn(batched..., shared...) over the starts of `batched` (non-array parts, the
+        solver's static state, pass through). With a mesh, every array with a starts
+        axis is laid out over the devices (`NamedSharding`, the starts axis split), so
+        that XLA's partitioner gives each device its own starts. (Not `shard_map`: the
+        solver's state records its arrays' structures, and a manual region adds a
+        sharding to some of them and not to others.)"""
         if self.mesh is not None:
             batched = self._spread(batched)
-        out = eqx.filter_vmap(lambda b: fn(*b, *shared))(batched)
-        return out if self.mesh is None else self._spread(out)
+        if self.mode == "vmap" or self.mesh is not None:
+            out = eqx.filter_vmap(lambda b: fn(*b, *shared))(batched)
+            return out if self.mesh is None else self._spread(out)
+        dyn, static = eqx.partition(batched, eqx.is_array)
+        box = []
+
+        def one(d):
+            out, out_static = eqx.partition(fn(*eqx.combine(d, static), *shared), eqx.is_array)
+            box.append(out_static)
+            return out
+
+        out = jax.lax.map(one, dyn)
+        return eqx.combine(out, box[0])
 
     def _spread(self, tree):
         split = NamedSharding(self.mesh, PartitionSpec(AXIS))
@@ -156,6 +173,7 @@ def fit_multistart(
     seed: int = 0,
     spread: float = 0.5,
     devices=None,
+    mode: str = "auto",
     spheres: Sequence[int] | None = None,
     solver: str = "lm",
     max_steps: int = 30,
@@ -178,8 +196,13 @@ def fit_multistart(
 
     starts: K; start 0 is `scene` as given, the others are perturbed by N(0, spread²)
       in the solver's coordinates (`perturbed_starts`), drawn from `seed`.
-    devices: None (one device: the starts are vmapped), an int, "all", or a list of
-      devices: the starts are sharded over them (`rtjax.device_mesh`).
+    devices: None (one device), an int, "all", or a list of devices: the starts are
+      laid out over them (`rtjax.device_mesh`), each device stepping its own.
+    mode: one device's starts within its one compiled call per iteration: "vmap" (all
+      at once), "map" (one after another, `lax.map`), or "auto" (default: "map" on a
+      single CPU, where `vmap` turns the renderer's run-time skipping of finished ray
+      segments into selects, measured about 3× slower; "vmap" otherwise). With
+      several devices the starts are vmapped.
     Other options as `fitting.fit`. The iteration count is shared: each iteration
     steps every start that has not stopped. `callback` gets one row per iteration,
     for the start with the lowest loss so far, with `active` (starts still going).
@@ -192,6 +215,8 @@ def fit_multistart(
         raise FitError(f"max_steps must be ≥ 1, not {max_steps}")
     if int(starts) < 1:
         raise FitError(f"starts must be ≥ 1, not {starts}")
+    if mode not in ("auto", "vmap", "map"):
+        raise FitError(f"mode must be 'auto', 'vmap' or 'map', not {mode!r}")
     if not (spread >= 0 and math.isfinite(spread)):
         raise FitError(f"spread must be a finite number ≥ 0, not {spread}")
     starts = int(starts)
@@ -223,7 +248,9 @@ def fit_multistart(
         widths, per_level = widths + [widths[-1]], per_level + [float(polish)]
     pyramid = make_levels(target, prepare_mask(mask, *target.shape[:2]), widths, per_level, dtype)
     objective = Objective(selection, depth, loss, loss_scale)
-    run = _Parallel(_Stepper(objective, SOLVERS[solver](rtol, atol), solver, jac), mesh)
+    if mode == "auto":
+        mode = "map" if mesh is None and jax.devices()[0].platform == "cpu" else "vmap"
+    run = _Parallel(_Stepper(objective, SOLVERS[solver](rtol, atol), solver, jac), mesh, mode)
 
     # K starts, padded to a multiple of the device count with copies that never step
     padded = -(-starts // n_dev) * n_dev
