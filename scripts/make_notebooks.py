@@ -289,7 +289,7 @@ textures = list(tex_scene.params.textures)
 k = next(i for i, t in enumerate(textures) if t.shape == planet.shape)
 turned = np.roll(np.asarray(textures[k]), planet.shape[1] // 4, axis=1)
 blue = (turned[..., 2] > turned[..., 0] + 40)[..., None]  # ocean texels
-recoloured = np.where(blue, turned[..., [2, 0, 1]], turned)  # oceans purple
+recoloured = np.where(blue, turned[..., [2, 0, 1]], turned)  # (B, R, G): oceans crimson
 before = len(COMPILES)
 img_turned, _ = timed_render(tex_scene.replace(textures=tuple(textures[:k] + [turned] + textures[k + 1:])))
 img_recol, _ = timed_render(tex_scene.replace(textures=tuple(textures[:k] + [recoloured] + textures[k + 1:])))
@@ -666,8 +666,8 @@ from rtjax import bench
 if QUICK:  # small images, one timed run each, no derivative timings
     CFG = bench.Config(ref_depth=6, ref_spp=2, depths=(0,), spps=(1, 2), edges=(1.0,), scales=(0.5, 1.0), repeats=1,
                        derivatives=False, numpy=False, width=64)
-else:  # `rtjax bench --quick`: reference 8×8 samples at depth 12, derivatives timed at ¼ size
-    CFG = bench.Config.quick()
+else:  # `rtjax bench --quick` (reference 8×8 samples at depth 12, derivatives timed at ¼ size), 5 timed runs each
+    CFG = dataclasses.replace(bench.Config.quick(), repeats=5)
 EXTREME_WIDTH = 32 if QUICK else 96
 print(f"quick mode: {QUICK}; {os.cpu_count()} CPU cores, jax {jax.__version__} on {jax.default_backend()}")
 '''),
@@ -730,8 +730,8 @@ print("on the Pareto front (nothing both faster and more accurate), fastest firs
 
         Under the table, derivatives are timed against a forward render of the same
         (quarter) size: a reverse-mode gradient of a scalar costs several forward
-        renders, a forward-mode Jacobian in the 24 centre coordinates about one render
-        per coordinate, one Levenberg–Marquardt step (a Jacobian, a linear solve and the
+        renders, a forward-mode Jacobian in the 24 centre coordinates of the order of one
+        render per coordinate, one Levenberg–Marquardt step (a Jacobian, a linear solve and the
         solver's bookkeeping) more than that; and the NumPy float64 renderer of the
         tests, run on the same deck, gives the speed-up of the compiled renderer on this
         machine.
