@@ -97,6 +97,7 @@ def test_fit_notebook_recovers_the_truth(executed):
     centres = float(re.search(r"FIT centres: max centre error ([0-9.]+) units", text).group(1))
     colours = float(re.search(r"FIT colours: max colour or ke error ([0-9.]+)", text).group(1))
     photo = float(re.search(r"FIT photo: smallest largest error ([0-9.]+)", text).group(1))
+    print("\n".join(line for line in text.splitlines() if line.startswith("FIT")))
     # quick mode: 64 pixels wide and a few iterations; the start is off by up to 2.5 units
     assert centres < 1.0, text
     assert colours < 0.1, text
