@@ -152,6 +152,15 @@ class _Parallel:
         return self._over_starts(lambda y, args: self.stepper.loss(y, args), (ys,), (samples,))
 
 
+def _host(a) -> np.ndarray:
+    """A NumPy copy of an array that may span several processes' devices."""
+    if jax.process_count() > 1 and isinstance(a, jax.Array) and not a.is_fully_addressable:
+        from jax.experimental import multihost_utils
+
+        return np.asarray(multihost_utils.process_allgather(a, tiled=True))
+    return np.asarray(a)
+
+
 def _select(mask, new, old):
     """Per start (mask's leading axis or a scalar), `new` where mask else `old` (arrays only)."""
 
@@ -272,7 +281,7 @@ def fit_multistart(
         budget = max_steps - steps if final else max(1, (max_steps - steps) // share)
         states = run.init(ys, samples)
         best_y = ys
-        best_loss = np.asarray(run.loss(ys, samples), np.float64)
+        best_loss = _host(run.loss(ys, samples)).astype(np.float64)
         stopped = ~real.copy()
         done = np.zeros(padded, bool)
         stalled = np.zeros(padded, int)
@@ -283,8 +292,8 @@ def fit_multistart(
             t0 = time.perf_counter()
             active = ~stopped
             ys, states, done_now, result_now, loss_now = run.step(ys, states, samples, jnp.asarray(active))
-            loss_now = np.asarray(loss_now, np.float64)
-            done_now, result_now = np.asarray(done_now, bool), np.asarray(result_now, np.int32)
+            loss_now = _host(loss_now).astype(np.float64)
+            done_now, result_now = _host(done_now).astype(bool), _host(result_now).astype(np.int32)
             seconds = time.perf_counter() - t0
             finite = np.isfinite(loss_now)
             diverged = active & ~finite
@@ -333,6 +342,7 @@ def fit_multistart(
     losses = [float(x) for x in best_loss[:starts]]
     order = np.where(np.isfinite(losses), losses, math.inf)
     index = int(np.argmin(order))
+    ys = jax.tree.map(lambda a: jnp.asarray(_host(a)), ys)  # every start's end, on this process
     pick = jax.tree.map(lambda a: a[index], ys)
     structure = scene.structure.replace(width=full.structure.width, height=full.structure.height)
     fitted = [rtjax.Scene(structure, selection.params(jax.tree.map(lambda a: a[k], ys)["scene"])) for k in range(starts)]

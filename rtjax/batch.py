@@ -56,10 +56,19 @@ SAMPLES_PER_CALL = 1 << 21
 
 
 def init_distributed(**kwargs) -> None:
-    """Join a multi-host run: `jax.distributed.initialize(**kwargs)` (coordinator
-    address, process count and id from the arguments or, on Cloud TPU, Slurm and
-    Open MPI, from the environment). Call it in every process before any JAX
-    computation; afterwards `jax.devices()` lists every host's devices."""
+    """Join a multi-host run: `jax.distributed.initialize(**kwargs)`. Call it in every
+    process before any JAX computation; afterwards `jax.devices()` lists every host's
+    devices. What is not given comes from the environment: JAX_COORDINATOR_ADDRESS
+    (host:port of process 0; read by JAX), JAX_NUM_PROCESSES and JAX_PROCESS_ID (read
+    here), or JAX's own detection of Slurm, Open MPI, Kubernetes and Cloud TPU."""
+    import os
+
+    for key, name in (("num_processes", "JAX_NUM_PROCESSES"), ("process_id", "JAX_PROCESS_ID")):
+        if kwargs.get(key) is None and os.environ.get(name):
+            try:
+                kwargs[key] = int(os.environ[name])
+            except ValueError:
+                raise RtjaxError(f"{name} must be a whole number, not {os.environ[name]!r}") from None
     jax.distributed.initialize(**kwargs)
 
 

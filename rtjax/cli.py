@@ -103,9 +103,9 @@ def _devices(text: str) -> int | str:
 
 
 def _start_distributed(args) -> None:
-    """--distributed: join a multi-host run (`jax.distributed.initialize`, configured by
-    the environment: JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, JAX_PROCESS_ID, or a
-    cluster's own such as Slurm's) before anything else touches JAX."""
+    """--distributed: join a multi-host run (`rtjax.init_distributed`, configured by the
+    environment: JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, JAX_PROCESS_ID, or what
+    JAX detects of Slurm, Open MPI, Kubernetes, Cloud TPU) before anything touches JAX."""
     if getattr(args, "distributed", False):
         from .batch import init_distributed
 
@@ -238,7 +238,9 @@ def cmd_fit(args) -> int:
     frame = deck.frames[args.frame]
     out = args.output or os.path.splitext(os.path.basename(args.deck))[0] + "_fitted.dat"
     outdir, stem = os.path.dirname(out) or ".", os.path.splitext(os.path.basename(out))[0]
-    progress = _Progress(args.max_steps, args.quiet)
+    import jax
+
+    progress = _Progress(args.max_steps, args.quiet or jax.process_index() != 0)
     options = dict(
         spheres=args.spheres,
         solver=args.solver,
@@ -263,6 +265,8 @@ def cmd_fit(args) -> int:
             result = fitting.fit(frame.scene, args.target, args.free, **options)
     finally:
         progress.close()
+    if jax.process_index() != 0:  # several hosts: the first one writes and reports
+        return 0 if result.converged else 1
     paths = save_outputs(result, outdir, stem, args.deck, args.target, image_name=f"{stem}.sunimg")
     if several:
         from fitting.multistart import add_to_report, summary_line
