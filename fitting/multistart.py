@@ -142,9 +142,27 @@ class _Parallel:
 
     def _step(self, ys, states, samples, active):
         def one(y, state, active, args):
-            y2, state2, done, result, loss = self.stepper._step(y, state, args)
-            y2, state2 = _select(active, (y2, state2), (y, state))
-            return y2, state2, done, result._value if hasattr(result, "_value") else result, loss
+            """One start's step, skipped (`lax.cond`) once it has stopped: in "map" mode a
+            stopped start costs nothing (under vmap the cond is a select of both)."""
+            dtype = jax.tree.leaves(y)[0].dtype
+            dyn_y, dyn_state = eqx.filter((y, state), eqx.is_array)
+            box = []
+
+            def run(dyn):
+                y, state = eqx.combine(dyn, eqx.filter((y0, s0), eqx.is_array, inverse=True))
+                y2, state2, done, result, loss = self.stepper._step(y, state, args)
+                code = result._value if hasattr(result, "_value") else result
+                new, static = eqx.partition((y2, state2), eqx.is_array)
+                box.append(static)
+                return new, jnp.asarray(done, bool), jnp.asarray(code, jnp.int32), jnp.asarray(loss, dtype)
+
+            def keep(dyn):
+                return dyn, jnp.asarray(True), jnp.asarray(0, jnp.int32), jnp.asarray(jnp.inf, dtype)
+
+            y0, s0 = y, state
+            new, done, code, loss = jax.lax.cond(active, run, keep, (dyn_y, dyn_state))
+            y2, state2 = eqx.combine(new, box[0])
+            return y2, state2, done, code, loss
 
         return self._over_starts(one, (ys, states, active), (samples,))
 
