@@ -9,6 +9,8 @@ no texture lookups without textures.
 
 from __future__ import annotations
 
+import functools
+
 from typing import NamedTuple
 
 import jax
@@ -162,11 +164,37 @@ def segment(
     return nxt, new_diff, hit
 
 
+#: Rays per tier of the chain: after each tier, the rays still alive are packed into the
+#: next, smaller one (see `_chain`). A tier is worth its extra compiled copy of the
+#: segment only on large ray counts; fits, which trace a few thousand rays, use one.
+TIER_DIVISOR = 8
+TIER_MIN = 4096
+
+
+def tiers(n: int) -> tuple[int, ...]:
+    """Buffer sizes of the chain's tiers for `n` rays: `n`, then `n`/8 when that is at
+    least `TIER_MIN` (static). On the sample deck 42 % of the rays go on after the
+    first segment, 28 % after the second and 3.5 % after the third."""
+    small = n // TIER_DIVISOR
+    return (n, small) if small >= TIER_MIN else (n,)
+
+
+def _gather(tree, sel):
+    return jax.tree_util.tree_map(lambda a: a[..., sel], tree)
+
+
 def _chain(s, p, m, rays, depth, diff=None, width=0.0, toggles=None, watch=None):
     """Segments until `rays.level` passes `depth`: one `lax.scan` body (compiled once,
     whatever the depth), each segment skipped at run time by a `lax.cond` once no ray is
     alive (both modes of differentiation go through `lax.cond`). `toggles` alter the
     first segment only.
+
+    Wavefront compaction: most rays end after a segment or two, but a scan over all of
+    them pays for every ray at every segment. So the chain runs in `tiers`: a tier's
+    segments run while more rays are alive than the next tier holds; then the live ones
+    (their state, differentials, toggles and watch) are packed into the next tier's
+    buffer, in order, traced on there and scattered back. Each ray meets the same
+    arithmetic either way; the image is the same.
 
     `watch(rays, diff, hit, best)` → best is folded over the segments (silhouette mode)."""
     if not s.needs_secondary_rays:
@@ -175,17 +203,33 @@ def _chain(s, p, m, rays, depth, diff=None, width=0.0, toggles=None, watch=None)
     if toggles is None:
         toggles = (jnp.full(rays.weight.shape, -1, jnp.int32),) * 2
     best = None if watch is None else watch.empty(rays, diff)
+    sizes = tiers(rays.weight.shape[0])
 
-    def body(carry, _):
+    def body(carry, _, nxt):
         def run(c):
             r, df, tg, b = c
             r2, df2, h = segment(s, p, m, r, depth, tg, df, width)
             off = jnp.full_like(tg[0], -1)
             return r2, df2, (off, off), (b if watch is None else watch(r, df, h, b))
 
-        return jax.lax.cond(jnp.any(carry[0].weight > 0), run, lambda c: c, carry), None
+        return jax.lax.cond(jnp.sum(carry[0].weight > 0) > nxt, run, lambda c: c, carry), None
 
-    (rays, _, _, best), _ = jax.lax.scan(body, (rays, diff, toggles, best), length=depth + 1)
+    def tier(state, i):
+        nxt = sizes[i + 1] if i + 1 < len(sizes) else 0
+        state, _ = jax.lax.scan(functools.partial(body, nxt=nxt), state, length=depth + 1)
+        if not nxt:
+            return state
+        # at most `nxt` rays are alive now (or none: every ray ended within the depth)
+        live = state[0].weight > 0
+        (sel,) = jnp.nonzero(live, size=nxt, fill_value=0)
+        valid = jnp.arange(nxt) < jnp.sum(live)
+        packed = _gather(state, sel)
+        packed = (packed[0]._replace(weight=jnp.where(valid, packed[0].weight, 0)),) + packed[1:]
+        done = tier(packed, i + 1)
+        to = jnp.where(valid, sel, live.shape[0])  # padding goes nowhere
+        return jax.tree_util.tree_map(lambda a, b: a.at[..., to].set(b, mode="drop"), state, done)
+
+    rays, _, _, best = tier((rays, diff, toggles, best), 0)
     return rays, best
 
 
