@@ -284,7 +284,8 @@ def trace_edges(s: Structure, p: Params, o, d, diff: "edges.Differentials", dept
     out, _ = _chain(s, p, m, start, depth, twice, width, (two(none, side.edge), two(side.edge, none)))
     inside, outside = jnp.split(jnp.clip(out.colour, 0, 255), 2, axis=-1)
     mixed = side.alpha * inside + (1 - side.alpha) * outside
-    return plain.at[:, sel].set(jnp.where(valid, mixed, plain[:, sel]))
+    # padding slots (index 0 repeated) write nowhere: pixel 0 may itself be an edge pixel
+    return plain.at[:, jnp.where(valid, sel, n)].set(mixed, mode="drop")
 
 
 def tiled(fn, tile: int, *arrays):
