@@ -32,9 +32,8 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 import rtjax
 
 from .errors import FitError
-from .objective import LOSSES, Objective, load_target, make_levels, match_size, nuisance_y0, prepare_mask, schedule_widths
-from .select import Selection
-from .solve import SOLVERS, FitResult, _message, _result_name, _Stepper
+from .objective import LOSSES
+from .solve import SOLVERS, FitResult, _message, _result_name, _Stepper, prepare_fit
 
 AXIS = "starts"
 
@@ -256,25 +255,8 @@ def fit_multistart(
     n_dev = 1 if mesh is None else mesh.devices.size
     t_start = time.perf_counter()
 
-    # the same set-up as `fit`
-    target = load_target(target, assignment_order=assignment_order)
-    full = match_size(scene, target)
-    selection = Selection(full, free, spheres)
-    y = {"scene": selection.y0()}
-    dtype = jnp.result_type(full.params.centers)
-    if nuisance:
-        y["nuisance"] = nuisance_y0(nuisance, jax.tree_util.tree_leaves(y["scene"])[0].dtype)
-    if jac is None:
-        jac = "bwd" if selection.size() > 200 else "fwd"
-    widths = schedule_widths(full.structure.width, levels)
-    given = [1.0] if edges is None else [float(e) for e in np.ravel(edges)]
-    if not given or min(given) <= 0:
-        raise FitError(f"edge widths must be > 0, not {edges}")
-    per_level = [given[min(i, len(given) - 1)] for i in range(len(widths))]
-    if polish:
-        widths, per_level = widths + [widths[-1]], per_level + [float(polish)]
-    pyramid = make_levels(target, prepare_mask(mask, *target.shape[:2]), widths, per_level, dtype)
-    objective = Objective(selection, depth, loss, loss_scale)
+    full, selection, y, jac, widths, pyramid, objective = prepare_fit(
+        scene, target, free, spheres, depth, levels, edges, polish, loss, loss_scale, mask, nuisance, jac, assignment_order)
     if mode == "auto":
         mode = "map" if mesh is None and jax.devices()[0].platform == "cpu" else "vmap"
     run = _Parallel(_Stepper(objective, SOLVERS[solver](rtol, atol), solver, jac), mesh, mode)

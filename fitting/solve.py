@@ -76,6 +76,32 @@ def _message(result) -> str:
         return _result_name(result)
 
 
+def prepare_fit(scene, target, free, spheres, depth, levels, edges, polish, loss, loss_scale, mask, nuisance, jac,
+                assignment_order):
+    """The set-up `fit` and `fit_multistart` share: the target at the scene's size, the
+    free parameters and their start, the Jacobian mode, the pyramid and the objective."""
+    target = load_target(target, assignment_order=assignment_order)
+    full = match_size(scene, target)
+    selection = Selection(full, free, spheres)
+    y = {"scene": selection.y0()}
+    dtype = jnp.result_type(full.params.centers)
+    if nuisance:
+        y["nuisance"] = nuisance_y0(nuisance, jax.tree_util.tree_leaves(y["scene"])[0].dtype)
+    if jac is None:
+        jac = "bwd" if selection.size() > 200 else "fwd"
+    widths = schedule_widths(full.structure.width, levels)
+    given = [1.0] if edges is None else [float(e) for e in np.ravel(edges)]
+    if not given or min(given) <= 0:
+        raise FitError(f"edge widths must be > 0, not {edges}")
+    # one value: every level; several: one per level in order, the last repeating
+    per_level = [given[min(i, len(given) - 1)] for i in range(len(widths))]
+    if polish:
+        widths, per_level = widths + [widths[-1]], per_level + [float(polish)]
+    pyramid = make_levels(target, prepare_mask(mask, *target.shape[:2]), widths, per_level, dtype)
+    objective = Objective(selection, depth, loss, loss_scale)
+    return full, selection, y, jac, widths, pyramid, objective
+
+
 def fit(
     scene: rtjax.Scene,
     target,
@@ -134,25 +160,8 @@ def fit(
     if int(max_steps) < 1:
         raise FitError(f"max_steps must be ≥ 1, not {max_steps}")
     t_start = time.perf_counter()
-    target = load_target(target, assignment_order=assignment_order)
-    full = match_size(scene, target)
-    selection = Selection(full, free, spheres)
-    y = {"scene": selection.y0()}
-    dtype = jnp.result_type(full.params.centers)
-    if nuisance:
-        y["nuisance"] = nuisance_y0(nuisance, jax.tree_util.tree_leaves(y["scene"])[0].dtype)
-    if jac is None:
-        jac = "bwd" if selection.size() > 200 else "fwd"
-    widths = schedule_widths(full.structure.width, levels)
-    given = [1.0] if edges is None else [float(e) for e in np.ravel(edges)]
-    if not given or min(given) <= 0:
-        raise FitError(f"edge widths must be > 0, not {edges}")
-    # one value: every level; several: one per level in order, the last repeating
-    per_level = [given[min(i, len(given) - 1)] for i in range(len(widths))]
-    if polish:
-        widths, per_level = widths + [widths[-1]], per_level + [float(polish)]
-    pyramid = make_levels(target, prepare_mask(mask, *target.shape[:2]), widths, per_level, dtype)
-    objective = Objective(selection, depth, loss, loss_scale)
+    full, selection, y, jac, widths, pyramid, objective = prepare_fit(
+        scene, target, free, spheres, depth, levels, edges, polish, loss, loss_scale, mask, nuisance, jac, assignment_order)
     run = _Stepper(objective, SOLVERS[solver](rtol, atol), solver, jac)
 
     history: list[dict] = []
