@@ -44,17 +44,55 @@ def tmin_for(scale) -> Float[Array, ""]:
     return scale * TMIN_REL[jnp.dtype(scale.dtype)]
 
 
-def _roots(o, d, centers, radii, origin, tmin):
-    """For every sphere and ray (N, P): may the near / far root be used, and their values.
+class Table(NamedTuple):
+    """Every ray against every sphere (N, P), without derivatives: what the nearest hit,
+    shadow rays and the silhouette mode's edge search all start from."""
 
-    The origin rule: for o on sphere k, b = r·(n_out·d), so b < 0 means inward.
-    """
+    b: Float[Array, "n p"]  # f·d, f = o − c: the ray passes closest to the centre at t = −b
+    l2: Float[Array, "n p"]  # |l|², l = f − b·d: the ray's squared distance from the centre
+    f2: Float[Array, "n p"]  # |f|²: the origin's squared distance from the centre
+
+
+def table(o, d, centers) -> Table:
+    o, d, centers = jax.lax.stop_gradient((o, d, centers))
     c = centers.T[:, :, None]  # (3, N, 1)
     f = o[:, None, :] - c  # (3, N, P)
     dd = d[:, None, :]
     b = dot(f, dd)
     l = f - b * dd
-    disc = radii[:, None] ** 2 - dot(l, l)
+    return Table(b, dot(l, l), dot(f, f))
+
+
+def plane_basis(light):
+    """Two unit vectors spanning the plane ⊥ to a unit vector (no gradient)."""
+    light = jax.lax.stop_gradient(light)
+    use_z = jnp.abs(light[2]) < 0.9
+    e1 = normalize(jnp.cross(light, jnp.where(use_z, jnp.array([0.0, 0, 1], light.dtype), jnp.array([1.0, 0, 0], light.dtype))))
+    return e1, jnp.cross(light, e1)
+
+
+def light_table(o, light, centers) -> Table:
+    """The `table` of rays from points o that all point along one unit vector `light`,
+    from coordinates along it and in the plane ⊥ it: (o − c)·L = o·L − c·L, and |l|²
+    is the squared distance of their projections on the plane. A third of the
+    arithmetic of `table`; the rounding of o·L (relative to |o|, not |o − c|) stays far
+    below the scene-relative `tmin`."""
+    o, light, centers = jax.lax.stop_gradient((o, light, centers))
+    e1, e2 = plane_basis(light)
+    frame = jnp.stack([light, e1, e2])  # (3, 3)
+    po, pc = frame @ o, centers @ frame.T  # (3, P), (N, 3)
+    b, u, v = (po[i][None, :] - pc[:, i][:, None] for i in range(3))
+    l2 = u * u + v * v
+    return Table(b, l2, b * b + l2)
+
+
+def _roots(o, d, centers, radii, origin, tmin, tab: Table | None = None):
+    """For every sphere and ray (N, P): may the near / far root be used, and their values.
+
+    The origin rule: for o on sphere k, b = r·(n_out·d), so b < 0 means inward.
+    """
+    b, l2, _ = table(o, d, centers) if tab is None else tab
+    disc = radii[:, None] ** 2 - l2
     meets = disc > 0
     sq = jnp.sqrt(jnp.maximum(disc, 0))
     near, far = -b - sq, -b + sq
@@ -64,17 +102,18 @@ def _roots(o, d, centers, radii, origin, tmin):
     return near_ok, far_ok, near, far
 
 
-def nearest(o, d, centers, radii, origin: Int[Array, " p"], tmin, exclude=None, active=None):
+def nearest(o, d, centers, radii, origin: Int[Array, " p"], tmin, exclude=None, active=None, tab: Table | None = None):
     """Per ray: distance to the nearest valid root (+inf if none), which sphere, and
     whether it is that sphere's far root. Not differentiated (a discrete choice).
 
     Scenes of more than `CULL_ABOVE` spheres test each group of rays only against the
     spheres it can meet (`culled_nearest`): the same answer. `active` (per ray, or None
-    for all) marks the rays whose answer is used; the others may get any answer."""
+    for all) marks the rays whose answer is used; the others may get any answer. `tab`:
+    this ray–sphere `table`, when the caller has it."""
     o, d, centers, radii = jax.lax.stop_gradient((o, d, centers, radii))
     if culls(centers.shape[0]):
         return culled_nearest(o, d, centers, radii, origin, tmin, exclude, active)
-    near_ok, far_ok, near, far = _roots(o, d, centers, radii, origin, tmin)
+    near_ok, far_ok, near, far = _roots(o, d, centers, radii, origin, tmin, tab)
     if exclude is not None:  # silhouette mode: the same rays with one sphere removed
         keep = exclude[None, :] != jnp.arange(centers.shape[0])[:, None]
         near_ok, far_ok = near_ok & keep, far_ok & keep
@@ -112,7 +151,9 @@ class Hit:
     """
 
     def __init__(self, o, d, centers, radii, origin, tmin, exclude=None, force=None, active=None):
-        best, idx, far = nearest(o, d, centers, radii, origin, tmin, exclude, active)
+        #: every ray against every sphere (small scenes; None where spheres are culled)
+        self.table: Table | None = None if culls(centers.shape[0]) else table(o, d, centers)
+        best, idx, far = nearest(o, d, centers, radii, origin, tmin, exclude, active, self.table)
         found = jnp.isfinite(best)
         if force is not None:
             forced = (force >= 0) & (~found | (idx != force))
@@ -137,7 +178,8 @@ class Hit:
         self.live: Bool[Array, " p"] = found if active is None else found & active
 
 
-def transmission(o, d, centers, radii, origin, tmin, opacity_factor, skip=None, active=None, grid=None) -> Float[Array, " p"]:
+def transmission(o, d, centers, radii, origin, tmin, opacity_factor, skip=None, active=None, grid=None,
+                 tab: Table | None = None) -> Float[Array, " p"]:
     """Shadow visibility along parallel-light rays: Π over spheres met of their factor.
 
     `opacity_factor[j]` is 0 for opaque, mirror and textured spheres and kt² for glass
@@ -145,11 +187,12 @@ def transmission(o, d, centers, radii, origin, tmin, opacity_factor, skip=None, 
     A sphere counts if the ray meets it ahead of the origin (its far root is ahead).
     `skip` (per ray, a sphere index or −1) leaves one sphere out (the silhouette mode
     accounts for it smoothly). `grid`: the `light_grid` of the direction d every ray
-    shares, for large scenes (`culled_transmission`; `active` as in `nearest`).
+    shares, for large scenes (`culled_transmission`; `active` as in `nearest`); `tab`:
+    the shadow rays' `table`, when the caller has it.
     """
     if grid is not None:
         return culled_transmission(o, grid, centers, radii, origin, tmin, opacity_factor, skip, active)
-    _, blocked, _, _ = _roots(*jax.lax.stop_gradient((o, d, centers, radii)), origin, tmin)
+    _, blocked, _, _ = _roots(*jax.lax.stop_gradient((o, d, centers, radii)), origin, tmin, tab)
     if skip is not None:
         blocked = blocked & (skip[None, :] != jnp.arange(centers.shape[0])[:, None])
     factor = jnp.where(blocked, opacity_factor[:, None], 1)
@@ -402,9 +445,7 @@ def light_grid(light, centers, radii, tmin) -> LightGrid:
     light, centers, radii = jax.lax.stop_gradient((light, centers, radii))
     n = centers.shape[0]
     side = grid_side(n)
-    use_z = jnp.abs(light[2]) < 0.9
-    e1 = normalize(jnp.cross(light, jnp.where(use_z, jnp.array([0.0, 0, 1], light.dtype), jnp.array([1.0, 0, 0], light.dtype))))
-    e2 = jnp.cross(light, e1)
+    e1, e2 = plane_basis(light)
     uv = jnp.stack([centers @ e1, centers @ e2])  # (2, N)
     big_r = radii * (1 + _RADIUS_SLACK) + tmin
     lo = jnp.min(uv - big_r, axis=1)
