@@ -205,7 +205,7 @@ def fit_multistart(
     max_steps: int = 30,
     levels: int | Sequence[int] | None = None,
     edges: float | Sequence[float] | None = None,
-    polish: float | None = 0.02,
+    polish: float | None = 1.0,
     depth: int | None = None,
     loss: str = "cauchy",
     loss_scale: float = 10.0,

@@ -95,9 +95,10 @@ def prepare_fit(scene, target, free, spheres, depth, levels, edges, polish, loss
         raise FitError(f"edge widths must be > 0, not {edges}")
     # one value: every level; several: one per level in order, the last repeating
     per_level = [given[min(i, len(given) - 1)] for i in range(len(widths))]
+    exact = [False] * len(widths)
     if polish:
-        widths, per_level = widths + [widths[-1]], per_level + [float(polish)]
-    pyramid = make_levels(target, prepare_mask(mask, *target.shape[:2]), widths, per_level, dtype)
+        widths, per_level, exact = widths + [widths[-1]], per_level + [float(polish)], exact + [True]
+    pyramid = make_levels(target, prepare_mask(mask, *target.shape[:2]), widths, per_level, dtype, exact=exact)
     objective = Objective(selection, depth, loss, loss_scale)
     return full, selection, y, jac, widths, pyramid, objective
 
@@ -112,7 +113,7 @@ def fit(
     max_steps: int = 30,
     levels: int | Sequence[int] | None = None,
     edges: float | Sequence[float] | None = None,
-    polish: float | None = 0.02,
+    polish: float | None = 1.0,
     depth: int | None = None,
     loss: str = "cauchy",
     loss_scale: float = 10.0,
@@ -141,10 +142,12 @@ def fit(
       rest), so one compiled step serves all levels.
     edges: edge width of the silhouette-aware render in pixels of each level (default 1):
       one value, or one per level (the last repeating).
-    polish: a last full-size level with this (narrow) edge width, default 0.02; None
-      for none. A target rendered at pixel centres has sharp edges: box-filtered edges
-      bias the optimum by a few hundredths of a pixel, which the polish removes (it then
-      rests on shading and the sharp edges; measured several times smaller errors).
+    polish: a last full-size level whose model values are pixel-centre colours, as in a
+      target that `rtjax render` made (edges sharp), with the derivatives of the
+      silhouette-aware render of this edge width (default 1); None for none. Box-filtered
+      edges alone bias the optimum on such a target by a few hundredths of a pixel
+      (tenths of a unit in depth on the sample deck); the polish matches it exactly at
+      the truth (see `Objective.model`).
     loss: 'cauchy' (default, robust), 'huber', or 'l2'; `loss_scale` in levels.
     nuisance: fitted jointly with the scene for photo-like targets: 'gain' and 'gamma'
       (model = 255·(gain·I/255)^γ) and 'blur' (a Gaussian σ in pixels, as a wider box
