@@ -109,18 +109,20 @@ def robust(r, loss: str, scale: float):
     return jnp.where(ok, jnp.sign(r) * jnp.sqrt(jnp.where(ok, 2 * rho, 1)), 0)
 
 
-def apply_nuisance(image, nuisance: dict):
-    """A camera's response: 255·(gain·I/255)^γ, with the gain and γ fitted jointly
-    (the blur acts on the render's edges, see `Objective.model`)."""
+def apply_nuisance(image, nuisance: dict, *, logs: bool = False):
+    """A camera's response: 255·(gain·I/255)^γ, in the units `FitResult.nuisance` gives
+    (gain and γ themselves; `logs=True`: their logarithms, what the solver moves). A
+    'blur' entry is ignored here: it acts on the render's edges (`Objective.model`)."""
     if not nuisance:
         return image
     x = image / 255
-    if "gain" in nuisance:
-        x = x * jnp.exp(nuisance["gain"])
-    if "gamma" in nuisance:
+    value = {k: jnp.exp(v) if logs else jnp.asarray(v) for k, v in nuisance.items()}
+    if "gain" in value:
+        x = x * value["gain"]
+    if "gamma" in value:
         pos = x > 1e-6
         xs = jnp.where(pos, x, 1)
-        x = jnp.where(pos, jnp.exp(jnp.exp(nuisance["gamma"]) * jnp.log(xs)), 0)
+        x = jnp.where(pos, jnp.exp(value["gamma"] * jnp.log(xs)), 0)
     return 255 * jnp.clip(x, 0, 1)
 
 
@@ -232,7 +234,7 @@ class Objective:
 
         if "blur" not in nuisance:  # a blurred target has no sharp edges to match
             colours = colours + jax.lax.cond(samples.exact > 0, centres, jnp.zeros_like, jax.lax.stop_gradient(colours))
-        return apply_nuisance(colours, nuisance)
+        return apply_nuisance(colours, nuisance, logs=True)
 
     def residuals(self, y: dict, samples: Samples):
         r = (self.model(y, samples) - samples.target) * samples.weight / 255

@@ -9,7 +9,7 @@ import numpy as np
 from conftest import scene_from_text
 
 import rtjax
-from fitting.objective import Objective, make_levels
+from fitting.objective import Objective, apply_nuisance, make_levels
 from fitting.select import Selection
 
 DECK = """
@@ -48,3 +48,12 @@ def test_exact_level_values_are_pixel_centres_and_derivatives_the_aware_ones():
     j_soft, j_exact = jac(soft), jac(exact)
     np.testing.assert_allclose(j_exact, j_soft, atol=1e-9)
     assert np.abs(j_soft).max() > 1  # edges move under the derivative
+
+
+def test_apply_nuisance_takes_the_units_fit_reports():
+    """FitResult.nuisance gives gain and γ themselves; the solver moves their logs."""
+    image = jnp.array([[[0.0, 51.0, 200.0]]])
+    expect = 255 * np.clip(1.5 * np.array([0.0, 51.0, 200.0]) / 255, 0, 1) ** 0.8
+    np.testing.assert_allclose(np.asarray(apply_nuisance(image, {"gain": 1.5, "gamma": 0.8}))[0, 0], expect, rtol=1e-6)
+    logs = {"gain": np.log(1.5), "gamma": np.log(0.8), "blur": 0.0}
+    np.testing.assert_allclose(np.asarray(apply_nuisance(image, logs, logs=True))[0, 0], expect, rtol=1e-6)
