@@ -1,7 +1,10 @@
 """`rtjax bench` on a tiny deck (the machinery, not the speed), and sphere culling: the
 same images and derivatives as testing every ray against every sphere.
 
-No timing is asserted anywhere: benchmarks print figures, tests check their shape.
+No timing is asserted anywhere: benchmarks print figures, tests check their shape. So
+the bench run and the LM step compile with XLA's backend optimisation off
+(`conftest.quick_xla`: the same program, half the compile time); the comparisons of
+culled and brute-force renders and derivatives run the optimised build.
 """
 
 from __future__ import annotations
@@ -13,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import SCENES
+from conftest import SCENES, quick_xla
 
 import rtjax
 from rtjax import bench, spheres
@@ -26,7 +29,8 @@ DECK = os.path.join(SCENES, "ex2s3.dat")
 def tiny_result():
     cfg = bench.Config(ref_depth=6, ref_spp=4, depths=(0, 10), spps=(1, 2, 4), edges=(1.0,), scales=(0.5, 1.0),
                        repeats=1, lm_step=False, numpy_repeats=1, width=32)
-    return bench.run(DECK, cfg, log=lambda line: None)
+    with quick_xla(clear=True):  # its figures are checked for shape and accuracy, not speed
+        return bench.run(DECK, cfg, log=lambda line: None)
 
 
 def test_bench_json_fields_and_plausible_values(tiny_result, tmp_path):
@@ -101,8 +105,9 @@ def test_lm_step_runs():
     def image(p):
         return rtjax.render(rtjax.Scene(st, p))
 
-    step = bench._lm_step(st, p0, image)
-    y = np.asarray(step())
+    with quick_xla(clear=True):
+        step = bench._lm_step(st, p0, image)
+        y = np.asarray(step())
     assert y.shape == (8, 3) and np.all(np.isfinite(y))
 
 
@@ -226,6 +231,8 @@ def test_culled_derivatives_equal_brute_force(scene200):
         tangent = bench._replace_params(tangent, centers=jnp.ones_like(p.centers))
         return jax.jvp(lambda q: rtjax.render(rtjax.Scene(st, q)), (p,), (tangent,))[1]
 
+    # the optimised build (not conftest.quick_xla): its LLVM -O0 build measured culled
+    # and brute-force centre gradients 1.5e-4 apart, more than the tolerance below
     g_c, j_c = jax.grad(loss)(p0), jvp(p0)
     with spheres.brute_force():
         g_b, j_b = jax.grad(loss)(p0), jvp(p0)

@@ -1,6 +1,19 @@
 """Numerical extremes (issue: derivatives you can trust): each in a test of its own, the
 image and its derivatives with respect to every array leaf finite, float32 and float64,
-forward and reverse mode, plain and (where edges matter) silhouette-aware."""
+forward and reverse mode, plain and (where edges matter) silhouette-aware.
+
+Compile time is most of this file's cost (a jvp and a vjp of the silhouette-aware
+render take XLA tens of seconds per dtype), so the scenes are built on few structures
+(the same sphere kinds, light count, image size, depth and mode), and each structure
+is compiled once per dtype and shared through the jit cache:
+
+- one opaque sphere, plain (depth 0) and silhouette-aware;
+- glass then opaque (GLASS), depth 3, plain;
+- opaque then mirror (MIRROR), depth 2, plain and silhouette-aware.
+
+The derivative checks compile with `jax_disable_most_optimizations` (`conftest.quick_xla`
+says why that still checks the same program); the forward renders of
+`test_scene_translated_by_1e4` are the optimised build's."""
 
 from __future__ import annotations
 
@@ -10,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import quick_xla
 
 import rtjax
 
@@ -43,7 +57,8 @@ def assert_finite_everywhere(scene: rtjax.Scene, depth: int | None = None, edges
         s = scene.astype(dtype)
         tangent = jax.tree_util.tree_unflatten(treedef, [jax.random.normal(k, l.shape, dtype) for k, l in zip(keys, leaves)])
         cotangent = jax.random.normal(keys[-1], (s.structure.height, s.structure.width, 3), dtype)
-        image, jvp, grads = _image_jvp_vjp(s.params, tangent, cotangent, s.structure, depth, edges)
+        with quick_xla():  # valid for finiteness: see conftest.quick_xla; compiled only here
+            image, jvp, grads = _image_jvp_vjp(s.params, tangent, cotangent, s.structure, depth, edges)
         name = jnp.dtype(dtype).name
         assert image.dtype == dtype and bool(jnp.all(jnp.isfinite(image))), f"image not finite ({name})"
         assert bool(jnp.all(jnp.isfinite(jvp))), f"forward-mode derivative not finite ({name})"
@@ -53,6 +68,45 @@ def assert_finite_everywhere(scene: rtjax.Scene, depth: int | None = None, edges
 
 
 LIT = "plig 0.3 -1 0.5 200 180 160\nelig 0.2\nback 10 20 30\n"
+GLASS_DEPTH = 3  # glass then opaque: every GLASS scene is traced this deep
+MIRROR_DEPTH = 2  # opaque then mirror
+
+
+def glass(glass_sphere: str, material: str, opaque: str = "sphe 0 30 0 10\nopaq 1 0 0 0 1\n") -> rtjax.Scene:
+    """A GLASS scene: a glass sphere, then an opaque one (the same structure for all)."""
+    return deck(glass_sphere + material + opaque + LIT)
+
+
+def pixel_ray(scene: rtjax.Scene, row: int, col: int) -> tuple[np.ndarray, np.ndarray]:
+    """Eye and unit direction (float64) of pixel (row, col)'s ray through its centre."""
+    p = scene.params
+    _, d = rtjax.camera.primary_rays(p.eye, p.refp, p.vang, scene.structure.width, scene.structure.height, jnp.array([0.5, 0.5]))
+    return np.asarray(p.eye, np.float64), np.asarray(d, np.float64)[:, row * scene.structure.width + col]
+
+
+def first_hit(scene: rtjax.Scene, row: int, col: int) -> tuple[np.ndarray, np.ndarray]:
+    """Where pixel (row, col)'s ray first meets sphere 0 from outside, and the unit
+    normal there (float64)."""
+    eye, d = pixel_ray(scene, row, col)
+    c, r = np.asarray(scene.params.centers[0], np.float64), float(scene.params.radii[0])
+    b = d @ (eye - c)
+    t = -b - np.sqrt(b * b - (eye - c) @ (eye - c) + r * r)
+    hit = eye + t * d
+    return hit, (hit - c) / r
+
+
+def light(direction: np.ndarray) -> str:
+    return "plig {:.17g} {:.17g} {:.17g} 255 255 255\n".format(*direction)
+
+
+def assert_glass_finite(scene: rtjax.Scene):
+    assert scene.structure.kinds == ("trpa", "opaq")
+    return assert_finite_everywhere(scene, depth=GLASS_DEPTH)
+
+
+def assert_mirror_finite(scene: rtjax.Scene, edges: float):
+    assert scene.structure.kinds == ("opaq", "mirr")
+    return assert_finite_everywhere(scene, depth=MIRROR_DEPTH, edges=edges)
 
 
 @pytest.mark.parametrize("edges", [0.0, 1.0])
@@ -71,17 +125,17 @@ def test_tangent_ray(edges):
 def test_total_internal_reflection_onset_and_past_it():
     # eye inside a glass sphere of n = 1.5: rays leave at every angle; the critical
     # angle asin(1/1.5) is crossed within the image
-    scene = deck("sphe 0 -45 0 20\ntrpa 0.9 1.5 0.2 10\nsphe 0 30 0 10\nopaq 1 0 0 0 1\n" + LIT)
-    assert_finite_everywhere(scene, depth=3)
+    assert_glass_finite(glass("sphe 0 -45 0 20\n", "trpa 0.9 1.5 0.2 10\n"))
 
 
 def test_n_equal_one():
-    assert_finite_everywhere(deck("sphe 0 0 0 10\ntrpa 0.8 1 0.3 5\n" + LIT), depth=2)
+    # an opaque sphere behind it, seen straight through (no bending at n = 1)
+    assert_glass_finite(glass("sphe 0 0 0 10\n", "trpa 0.8 1 0.3 5\n"))
 
 
 @pytest.mark.parametrize("kt", ["0", "1"])
 def test_kt_extremes(kt):
-    assert_finite_everywhere(deck(f"sphe 0 0 0 10\ntrpa {kt} 1.3 0.3 5\nsphe 0 30 0 10\nopaq 0 1 0 0.5 3\n" + LIT), depth=2)
+    assert_glass_finite(glass("sphe 0 0 0 10\n", f"trpa {kt} 1.3 0.3 5\n", "sphe 0 30 0 10\nopaq 0 1 0 0.5 3\n"))
 
 
 def test_ks_zero():
@@ -94,15 +148,28 @@ def test_beta_extremes(beta):
 
 
 def test_cos_gamma_zero_exactly():
-    # light along +x, the centre pixel sees the point (0, -10, 0) with N = -y = V·(-1):
-    # R_L = 2(N·L)N − L = −L ⟂ V → cos γ = 0, and N·L = 0 too; nudge L so N·L > 0 but R_L·V = 0
-    scene = deck("sphe 0 0 0 10\nopaq 1 1 1 1 7\nplig 1 0 0 255 255 255\n", "eyep 0 -50 0\nrefp 0 0 0\nvang 40 40\n")
-    assert_finite_everywhere(scene)
+    # at pixel (3, 4)'s hit point (normal N, V toward the eye), a light L with N·L > 0
+    # whose reflection R_L = 2(N·L)N − L is perpendicular to V: cos γ = R_L·V = 0 there
+    # (to rounding), the kink of max(cos γ, 0)^β
+    body = "sphe 0 0 0 10\nopaq 1 1 1 1 7\n"
+    hit, n = first_hit(deck(body + LIT), 3, 4)
+    v = np.asarray(deck(body + LIT).params.eye, np.float64) - hit
+    v /= np.linalg.norm(v)
+    reflected = n - (n @ v) * v  # ⟂ V, and R_L·N > 0
+    reflected /= np.linalg.norm(reflected)
+    lit = 2 * (n @ reflected) * n - reflected
+    assert n @ lit > 0.1 and abs((2 * (n @ lit) * n - lit) @ v) < 1e-12
+    assert_finite_everywhere(deck(body + light(lit)))
 
 
 def test_light_grazing_the_surface():
-    # N·L = 0 along the sphere's terminator, which crosses the image
-    assert_finite_everywhere(deck("sphe 0 0 0 10\nopaq 1 1 1 0.5 3\nplig 1 0 0 255 255 255\n"))
+    # N·L = 0 at pixel (3, 4)'s hit point (to rounding): the light is tangent there, and
+    # the terminator crosses the image
+    body = "sphe 0 0 0 10\nopaq 1 1 1 0.5 3\n"
+    _, n = first_hit(deck(body + LIT), 3, 4)
+    tangent = np.array([1.0, 0, 0]) - n[0] * n
+    assert abs(n @ tangent) < 1e-12
+    assert_finite_everywhere(deck(body + light(tangent / np.linalg.norm(tangent))))
 
 
 def test_light_exactly_behind_the_eye():
@@ -121,14 +188,14 @@ def test_scene_translated_by_1e4():
     cam = "eyep {x} -50 10\nrefp {x} 0 0\nvang 40 30\n"
     near = deck(body.format(x=0, x2=14), cam.format(x=0))
     far = deck(body.format(x=10000, x2=10014), cam.format(x=10000))
-    assert_finite_everywhere(far, depth=2)
+    assert_mirror_finite(far, edges=0.0)
     # self-intersection stays right: the translated scene looks the same (float64)
-    a = np.asarray(rtjax.render(near.astype(jnp.float64), depth=2))
-    b = np.asarray(rtjax.render(far.astype(jnp.float64), depth=2))
+    a = np.asarray(rtjax.render(near.astype(jnp.float64), depth=MIRROR_DEPTH))
+    b = np.asarray(rtjax.render(far.astype(jnp.float64), depth=MIRROR_DEPTH))
     np.testing.assert_allclose(a, b, atol=1e-6)
     # and in float32, no speckles of self-shadowing: nearly all pixels agree
-    a32 = np.asarray(rtjax.render(near, depth=2))
-    b32 = np.asarray(rtjax.render(far, depth=2))
+    a32 = np.asarray(rtjax.render(near, depth=MIRROR_DEPTH))
+    b32 = np.asarray(rtjax.render(far, depth=MIRROR_DEPTH))
     assert np.mean(np.abs(a32 - b32).max(-1) < 1) > 0.97
 
 
@@ -139,17 +206,17 @@ def test_eye_inside_an_opaque_sphere():
 
 
 def test_eye_inside_a_glass_sphere():
-    assert_finite_everywhere(deck("sphe 0 -50 0 5\ntrpa 0.8 1.4 0.3 5\nsphe 0 0 0 10\nopaq 1 1 0 0 1\n" + LIT), depth=3)
+    assert_glass_finite(glass("sphe 0 -50 0 5\n", "trpa 0.8 1.4 0.3 5\n", "sphe 0 0 0 10\nopaq 1 1 0 0 1\n"))
 
 
 def test_two_spheres_touching():
     scene = deck("sphe -5 0 0 5\nopaq 1 0 0 0.3 5\nsphe 5 0 0 5\nmirr\n" + LIT)
-    assert_finite_everywhere(scene, depth=2, edges=1.0)
+    assert_mirror_finite(scene, edges=1.0)
 
 
 def test_sphere_behind_the_eye():
     scene = deck("sphe 0 -80 0 10\nopaq 1 0 0 0.3 5\nsphe 0 0 0 5\nmirr\n" + LIT)
-    image = assert_finite_everywhere(scene, depth=2, edges=1.0)
+    image = assert_mirror_finite(scene, edges=1.0)
     assert float(np.asarray(image)[3, 4, 0]) > 0  # seen in the mirror
 
 

@@ -2,14 +2,20 @@
 (vmapped on one device, sharded over four), the best kept, the converged ones counted.
 
 One fit in-process (3 starts, one device) and the same fit with 4 starts over 4 forced
-host devices in a subprocess (`tests/multidevice.py fit`), run at the same time; starts
-0-2 are the same in both (start 0 as given, then the same seeded draws), so the sharded
-solves must agree with the vmapped ones.
+host devices in a subprocess (`tests/multidevice.py fit`), started in the background as
+soon as the session has collected a test that needs it (conftest.py's background work),
+so it runs while the tests before these do; starts 0-2 are the same in both (start 0 as
+given, then the same seeded draws), so the sharded solves must agree with the vmapped
+ones.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import shutil
+import subprocess
+import tempfile
 
 import numpy as np
 import pytest
@@ -43,12 +49,33 @@ def truth() -> rtjax.Scene:
     return scene_from_text(DECK)
 
 
+BACKGROUND_FOR = "runs"  # conftest.py: start the 4-device fit once a test that needs it is collected
+_FOUR: dict = {}
+
+
+def start_background() -> subprocess.Popen:
+    """The 4-device fit (a subprocess, started once)."""
+    if "proc" not in _FOUR:
+        _FOUR["folder"] = tempfile.mkdtemp(prefix="rtjax_multistart_")
+        spec = os.path.join(_FOUR["folder"], "spec.json")
+        with open(spec, "w") as f:
+            json.dump({"deck": DECK, "offset": OFFSET, "options": dict(OPTIONS, starts=4)}, f)
+        _FOUR["proc"] = launch("fit", spec, nice=True)
+    return _FOUR["proc"]
+
+
+def stop_background():
+    proc = _FOUR.pop("proc", None)
+    if proc is not None and proc.poll() is None:
+        proc.kill()
+        proc.communicate()
+    shutil.rmtree(_FOUR.pop("folder", ""), ignore_errors=True)
+
+
 @pytest.fixture(scope="module")
-def runs(truth, tmp_path_factory):
+def runs(truth):
     """(one-device result, the 4-device subprocess's result)."""
-    spec = tmp_path_factory.mktemp("fit") / "spec.json"
-    spec.write_text(json.dumps({"deck": DECK, "offset": OFFSET, "options": dict(OPTIONS, starts=4)}))
-    proc = launch("fit", str(spec))  # runs while the in-process fit below does
+    proc = start_background()  # runs while the in-process fit below does, if not done already
     try:
         start = truth.replace(centers=np.asarray(truth.params.centers) + np.asarray(OFFSET))
         target = np.floor(np.asarray(rtjax.render(truth)) + 0.5)
@@ -56,9 +83,7 @@ def runs(truth, tmp_path_factory):
         one = fitting.fit_multistart(start, target, "centers", starts=3, callback=rows.append, **OPTIONS)
         four = collect(proc)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+        stop_background()
     return one, four, rows, start
 
 
