@@ -77,11 +77,18 @@ def glass(glass_sphere: str, material: str, opaque: str = "sphe 0 30 0 10\nopaq 
     return deck(glass_sphere + material + opaque + LIT)
 
 
-def pixel_ray(scene: rtjax.Scene, row: int, col: int) -> tuple[np.ndarray, np.ndarray]:
-    """Eye and unit direction (float64) of pixel (row, col)'s ray through its centre."""
+def primary_rays(scene: rtjax.Scene) -> tuple[np.ndarray, np.ndarray]:
+    """The eye (3,) and every pixel's unit direction (H·W, 3, row-major) through its
+    centre, from the renderer's own camera and the scene's own numbers, in float64."""
     p = scene.params
     _, d = rtjax.camera.primary_rays(p.eye, p.refp, p.vang, scene.structure.width, scene.structure.height, jnp.array([0.5, 0.5]))
-    return np.asarray(p.eye, np.float64), np.asarray(d, np.float64)[:, row * scene.structure.width + col]
+    return np.asarray(p.eye, np.float64), np.asarray(d, np.float64).T
+
+
+def pixel_ray(scene: rtjax.Scene, row: int, col: int) -> tuple[np.ndarray, np.ndarray]:
+    """Eye and unit direction (float64) of pixel (row, col)'s ray through its centre."""
+    eye, d = primary_rays(scene)
+    return eye, d[row * scene.structure.width + col]
 
 
 def first_hit(scene: rtjax.Scene, row: int, col: int) -> tuple[np.ndarray, np.ndarray]:
@@ -123,9 +130,36 @@ def test_tangent_ray(edges):
 
 
 def test_total_internal_reflection_onset_and_past_it():
-    # eye inside a glass sphere of n = 1.5: rays leave at every angle; the critical
-    # angle asin(1/1.5) is crossed within the image
-    assert_glass_finite(glass("sphe 0 -45 0 20\n", "trpa 0.9 1.5 0.2 10\n"))
+    # The eye inside a glass sphere of n = 1.5, off its centre: a ray from the eye meets
+    # the sphere from inside at incidence i, sin i = (distance from the centre to the
+    # ray) / r, and is totally reflected where n·sin i > 1 (and again at every later
+    # hit inside: the angle is kept). The centre lies 16 units from the eye, 56° off the
+    # view axis, so that distance varies across the image, and r puts pixel (3, 4)'s ray
+    # at the critical angle itself: the columns on one side leave the glass, those on
+    # the other are totally reflected.
+    n = 1.5
+    centre = np.array([0.0, -50, 0]) + 16 * np.array([-np.sin(np.radians(56)), np.cos(np.radians(56)), 0])
+
+    def scene(r: float) -> rtjax.Scene:
+        return glass("sphe {:.17g} {:.17g} {:.17g} {:.17g}\n".format(*centre, r), f"trpa 0.9 {n} 0.2 10\n")
+
+    eye, d = pixel_ray(scene(20.0), 3, 4)
+    s = scene(n * np.linalg.norm(np.cross(centre - eye, d)))
+    # n·sin i for every pixel, from the scene as parsed (float32 numbers) and its camera
+    eye, d = primary_rays(s)
+    c, r = np.asarray(s.params.centers[0], np.float64), float(s.params.radii[0])
+    assert np.linalg.norm(c - eye) < r - 1  # the eye is inside: every primary ray leaves through the glass
+    ratio = n * np.linalg.norm(np.cross(c - eye, d), axis=1) / r
+    tir = ratio > 1
+    assert 10 <= tir.sum() <= ratio.size - 10, ratio.reshape(6, 8)  # both cases, in many pixels
+    assert ratio.max() > 1.1 and ratio.min() < 0.8  # well past the critical angle, and well short of it
+    assert abs(ratio[3 * 8 + 4] - 1) < 1e-6, ratio[3 * 8 + 4]  # and its onset, at pixel (3, 4)
+    image = assert_glass_finite(s)
+    # the render agrees: past the critical angle a ray never leaves the glass within the
+    # depth and shows only the glass's highlight; short of it, it sees the background
+    # through the glass (blue 0.9·30 = 27)
+    blue = np.asarray(image)[..., 2].reshape(-1)
+    assert blue[ratio < 0.999].min() > blue[ratio > 1.001].max() + 5, blue.reshape(6, 8)
 
 
 def test_n_equal_one():
