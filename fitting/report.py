@@ -63,14 +63,14 @@ def write_json(path: str, data: dict) -> None:
 
 
 def plot_convergence(result: FitResult, path: str) -> None:
-    """Loss per iteration (log scale), the pyramid levels shaded, written atomically as PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    """Loss per iteration (log scale), the pyramid levels shaded, written atomically as PNG.
+    Drawn on a `matplotlib.figure.Figure` of its own (not pyplot): the caller's backend, a
+    notebook's say, is left as it is."""
+    from matplotlib.figure import Figure
 
     h = result.history
-    fig, ax = plt.subplots(figsize=(6.4, 3.6), dpi=100)
+    fig = Figure(figsize=(6.4, 3.6), dpi=100)
+    ax = fig.subplots()
     if h:
         steps = [r["step"] for r in h]
         ax.semilogy(steps, [max(r["loss"], 1e-300) for r in h], "o-", ms=3, label="loss")
@@ -90,7 +90,6 @@ def plot_convergence(result: FitResult, path: str) -> None:
     fig.tight_layout()
     with rtjax.atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
-    plt.close(fig)
 
 
 def save_outputs(result: FitResult, outdir: str, stem: str, deck_path: str | None = None, target_path: str | None = None,

@@ -572,11 +572,9 @@ def _default(result: dict) -> dict:
 def pareto_plot(result: dict, path: str) -> None:
     """Error (RMS level difference, log) against render time (ms, log), one labelled
     point per distinct setting, the Pareto front (nothing both faster and more
-    accurate) joined by a line."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    accurate) joined by a line. Drawn on a `matplotlib.figure.Figure` of its own (not
+    pyplot): the caller's backend, a notebook's say, is left as it is."""
+    from matplotlib.figure import Figure
 
     seen, pts = set(), []
     for r in result["settings"]:
@@ -586,7 +584,8 @@ def pareto_plot(result: dict, path: str) -> None:
         seen.add(key)
         pts.append((1e3 * r["median_s"], max(r["rms_levels"], 1e-3), r["label"], r["knob"]))
     colours = {"default": "black", "dtype": "tab:purple", "depth": "tab:blue", "spp": "tab:green", "edges": "tab:orange", "scale": "tab:red"}
-    fig, ax = plt.subplots(figsize=(9, 6), dpi=110)
+    fig = Figure(figsize=(9, 6), dpi=110)
+    ax = fig.subplots()
     for knob, colour in colours.items():
         sel = [p for p in pts if p[3] == knob]
         if sel:
@@ -610,19 +609,16 @@ def pareto_plot(result: dict, path: str) -> None:
     ax.legend(fontsize=8, loc="best")
     fig.tight_layout()
     fig.savefig(path)
-    plt.close(fig)
 
 
 def scale_plot(result: dict, path: str) -> None:
     """Three log-log panels: time against spheres (culled and brute force), time against
-    pixels, gradient memory against depth."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    pixels, gradient memory against depth (a `Figure` of its own, as `pareto_plot`)."""
+    from matplotlib.figure import Figure
 
     s = result["scale"]
-    fig, axes = plt.subplots(1, 3, figsize=(14, 4.3), dpi=110)
+    fig = Figure(figsize=(14, 4.3), dpi=110)
+    axes = fig.subplots(1, 3)
     ax = axes[0]
     ax.plot([r["n"] for r in s["spheres"]], [1e3 * r["median_s"] for r in s["spheres"]], "o-", label="rtjax (culled beyond 32)")
     brute = [r for r in s["spheres"] if "brute" in r]
@@ -648,7 +644,6 @@ def scale_plot(result: dict, path: str) -> None:
         a.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path)
-    plt.close(fig)
 
 
 def write_outputs(result: dict, outdir: str, stem: str) -> dict[str, str]:

@@ -85,6 +85,25 @@ def test_bench_json_fields_and_plausible_values(tiny_result, tmp_path):
     assert "reference" in text and "NumPy" in text and "×" in text
 
 
+def test_plots_leave_the_callers_backend_alone(tiny_result, tmp_path, monkeypatch):
+    """The bench's and the fit report's plots draw on Figures of their own: no
+    `matplotlib.use`, which would switch a notebook's backend."""
+    import types
+
+    import matplotlib
+
+    from fitting.report import plot_convergence
+
+    calls = []
+    monkeypatch.setattr(matplotlib, "use", lambda *a, **k: calls.append(a))
+    bench.pareto_plot(tiny_result, str(tmp_path / "pareto.png"))
+    history = [{"step": i, "loss": 1.0 / i, "best_loss": 1.0 / i, "width": 16 if i < 3 else 32} for i in range(1, 6)]
+    plot_convergence(types.SimpleNamespace(history=history, solver="lm", result="successful"), str(tmp_path / "fit.png"))
+    assert not calls
+    for name in ("pareto.png", "fit.png"):
+        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 def test_image_errors():
     ref = np.zeros((4, 6, 3))
     assert bench.image_errors(ref, ref) == {"psnr_db": None, "rms_levels": 0.0, "max_levels": 0, "frac_off": 0.0}
