@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
+import subprocess
 import sys
+import threading
 
 import jax
 
@@ -59,40 +62,119 @@ def quick_xla(clear: bool = False):
 
 # -- background work: subprocesses that some tests wait for ------------------------------
 #
-# A test module may define `start_background()` (start its slow subprocesses; called at
-# most once), `stop_background()` (end what is left, at the end of the session) and
-# BACKGROUND_FOR, the name of the fixture that waits for them. When a selected test uses
-# that fixture, the work starts as soon as collection ends, at a low priority (nice), so
-# that it runs on an otherwise idle core while the tests before it run (XLA compiles on
-# one core; the suite runs test after test). Nothing starts for tests not selected.
+# XLA compiles on one core and the suite runs one test after another, so on a machine
+# with two cores one is mostly idle. A few tests wait for slow subprocesses (the
+# notebooks' quick runs, the 4-device multi-start fit); those are `Job`s, run one after
+# another in a background thread from the moment collection ends, so that they are
+# usually done before the tests that need them are reached. A test module offers jobs
+# with `background_jobs()` (the same Job objects on every call) and names the fixture
+# that waits for them in BACKGROUND_FOR: nothing starts unless a selected test uses that
+# fixture. A test that needs a job not begun yet runs it at once (`Job.result`). Jobs
+# run at the tests' own priority: a niced job starves on a machine that is busy anyway.
 
-_STARTED: list = []
+
+class Job:
+    """Work done in a thread, usually in the background: `run(job)` starts its
+    subprocesses with `job.popen` (so that `stop` can end them) and returns a result."""
+
+    def __init__(self, name: str, run):
+        self.name, self._run = name, run
+        self._lock = threading.Lock()
+        self._begun = self._stopped = False
+        self._done = threading.Event()
+        self._procs: list[subprocess.Popen] = []
+        self._result = self._error = None
+
+    def _claim(self) -> bool:
+        with self._lock:
+            begun, self._begun = self._begun, True
+            return not begun
+
+    def _body(self):
+        try:
+            self._result = self._run(self)
+        except BaseException as e:  # handed to whoever waits
+            self._error = e
+        finally:
+            self._done.set()
+
+    def run_here(self):
+        """Run it in this thread unless it has begun (the background chain)."""
+        if self._claim():
+            self._body()
+
+    def begin(self):
+        """Start it in a thread of its own unless it has begun."""
+        if self._claim():
+            threading.Thread(target=self._body, name=self.name, daemon=True).start()
+
+    def result(self):
+        """Its result, once done (started now if it had not begun)."""
+        self.begin()
+        self._done.wait()
+        if self._error is not None:
+            raise self._error
+        return self._result
+
+    def popen(self, cmd, **kw) -> subprocess.Popen:
+        """A subprocess of this job, in a process group of its own (so `stop` ends its
+        children too, a notebook's kernel say)."""
+        with self._lock:
+            if self._stopped:
+                raise RuntimeError(f"{self.name}: stopped")
+            proc = subprocess.Popen(cmd, start_new_session=True, **kw)
+            self._procs.append(proc)
+            return proc
+
+    def stop(self):
+        """End its subprocesses still running; a job not begun never starts."""
+        with self._lock:
+            never = not self._begun
+            self._stopped = self._begun = True
+            procs = list(self._procs)
+        for proc in procs:
+            kill_group(proc)
+        if never:
+            self._error = RuntimeError(f"{self.name}: stopped before it began")
+            self._done.set()
+
+
+def kill_group(proc: subprocess.Popen):
+    """SIGKILL a subprocess started by `Job.popen` and its children; reap it."""
+    if proc.poll() is None:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    proc.wait()
+
+
+_JOBS: list[Job] = []
 
 
 def pytest_collection_finish(session):
+    modules = []
     for item in session.items:
         module = getattr(item, "module", None)
-        start = getattr(module, "start_background", None)
-        if start is None or module in _STARTED or getattr(module, "BACKGROUND_FOR", None) not in item.fixturenames:
-            continue
-        _STARTED.append(module)
-        start()
+        if module not in modules and getattr(module, "BACKGROUND_FOR", None) in item.fixturenames:
+            modules.append(module)
+    for module in modules:
+        _JOBS.extend(module.background_jobs())
+    if _JOBS:
+        jobs = list(_JOBS)
+        threading.Thread(target=lambda: [job.run_here() for job in jobs], name="background jobs", daemon=True).start()
 
 
 def pytest_sessionfinish(session):
-    while _STARTED:
-        _STARTED.pop().stop_background()
-
-
-def nice_subprocess() -> None:
-    """`preexec_fn` for background subprocesses: below the tests' own priority."""
-    os.nice(10)
+    while _JOBS:
+        _JOBS.pop().stop()
 
 
 def scene_from_text(text: str, size: int | None = None, index: int = 0) -> rtjax.Scene:
     """The `index`-th frame of deck text, optionally at another width (small tests)."""
     scene = rtjax.parse_deck(text).frames[index].scene
     return scene if size is None else scene.resized(size)
+
 
 
 @pytest.fixture(scope="session")

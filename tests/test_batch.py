@@ -14,7 +14,6 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import nice_subprocess
 from test_cli import SMALL, render_main, write_deck
 
 import rtjax
@@ -24,16 +23,15 @@ from rtjax.sunraster import read_sunraster
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
-def launch(*args: str, nice: bool = False) -> subprocess.Popen:
-    """tests/multidevice.py in a fresh process with 4 forced CPU devices (`nice`: at a
-    lower priority than the tests'). rtjax adds its own XLA flag to XLA_FLAGS
+def launch(*args: str, popen=subprocess.Popen) -> subprocess.Popen:
+    """tests/multidevice.py in a fresh process with 4 forced CPU devices (started by
+    `popen`, e.g. a conftest.Job's). rtjax adds its own XLA flag to XLA_FLAGS
     (appending), so the forced device count survives."""
     flags = (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4").strip()
     env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
     env.pop("RTJAX_KEEP_XLA_FLAGS", None)
-    return subprocess.Popen([sys.executable, os.path.join(HERE, "multidevice.py"), *args], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=nice_subprocess if nice else None)
+    return popen([sys.executable, os.path.join(HERE, "multidevice.py"), *args], env=env,
+                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 def collect(proc: subprocess.Popen, timeout: float = 600) -> dict:

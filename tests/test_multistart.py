@@ -14,12 +14,11 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import subprocess
 import tempfile
 
 import numpy as np
 import pytest
-from conftest import scene_from_text
+from conftest import Job, scene_from_text
 from test_batch import collect, launch
 
 import fitting
@@ -49,41 +48,40 @@ def truth() -> rtjax.Scene:
     return scene_from_text(DECK)
 
 
-BACKGROUND_FOR = "runs"  # conftest.py: start the 4-device fit once a test that needs it is collected
-_FOUR: dict = {}
+BACKGROUND_FOR = "runs"  # conftest.py: the 4-device fit starts once a test that needs it is collected
+_JOBS: list[Job] = []
 
 
-def start_background() -> subprocess.Popen:
-    """The 4-device fit (a subprocess, started once)."""
-    if "proc" not in _FOUR:
-        _FOUR["folder"] = tempfile.mkdtemp(prefix="rtjax_multistart_")
-        spec = os.path.join(_FOUR["folder"], "spec.json")
+def _four_device_fit(job: Job) -> dict:
+    folder = tempfile.mkdtemp(prefix="rtjax_multistart_")
+    try:
+        spec = os.path.join(folder, "spec.json")
         with open(spec, "w") as f:
             json.dump({"deck": DECK, "offset": OFFSET, "options": dict(OPTIONS, starts=4)}, f)
-        _FOUR["proc"] = launch("fit", spec, nice=True)
-    return _FOUR["proc"]
+        return collect(launch("fit", spec, popen=job.popen))
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
-def stop_background():
-    proc = _FOUR.pop("proc", None)
-    if proc is not None and proc.poll() is None:
-        proc.kill()
-        proc.communicate()
-    shutil.rmtree(_FOUR.pop("folder", ""), ignore_errors=True)
+def background_jobs() -> list[Job]:
+    if not _JOBS:
+        _JOBS.append(Job("4-device multi-start fit", _four_device_fit))
+    return _JOBS
 
 
 @pytest.fixture(scope="module")
 def runs(truth):
     """(one-device result, the 4-device subprocess's result)."""
-    proc = start_background()  # runs while the in-process fit below does, if not done already
+    (four_job,) = background_jobs()
+    four_job.begin()  # runs while the in-process fit below does, if not done already
     try:
         start = truth.replace(centers=np.asarray(truth.params.centers) + np.asarray(OFFSET))
         target = np.floor(np.asarray(rtjax.render(truth)) + 0.5)
         rows = []
         one = fitting.fit_multistart(start, target, "centers", starts=3, callback=rows.append, **OPTIONS)
-        four = collect(proc)
+        four = four_job.result()
     finally:
-        stop_background()
+        four_job.stop()
     return one, four, rows, start
 
 

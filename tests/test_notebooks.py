@@ -2,32 +2,30 @@
 
 Each is executed with nbclient in the reduced mode (RTJAX_NOTEBOOK_QUICK=1: small
 images, few iterations, every cell still runs) by scripts/make_notebooks.py in a
-subprocess of its own. The runs start in the background as soon as the session has
-collected a test that needs them (conftest.py's background work), one after another at
-a low priority, so in a whole-suite run they use a core the tests before them leave
-idle; when the first such test is reached, every run not started yet starts at once
-(side by side, as the whole used to: run alone this file costs about as long as the
-slowest). Checked: no cell errored, every notebook shows images, the fitting
-notebook's printed errors are small; and the committed notebooks are the generator's
-cells with the outputs of a full run.
+subprocess of its own. The runs are background jobs (conftest.py): they start one after
+another as soon as the session has collected a test that needs them, so in a run of
+the whole suite they use a core the tests before them leave idle; the first test that
+needs them starts every run not begun yet at once (side by side: run alone, this file
+costs about as long as the slowest notebook). Checked: no cell errored, every notebook
+shows images, the fitting notebook's printed errors are small; and the committed
+notebooks are the generator's cells with the outputs of a full run.
 """
 
 from __future__ import annotations
 
+import atexit
 import importlib.util
 import os
 import re
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 
 import nbformat
 import pytest
-from conftest import ROOT, nice_subprocess
+from conftest import ROOT, Job, kill_group
 
 SCRIPT = os.path.join(ROOT, "scripts", "make_notebooks.py")
 NOTEBOOKS = os.path.join(ROOT, "notebooks")
@@ -47,107 +45,61 @@ NAMES = list(GEN.BUILDERS)
 LONGEST_FIRST = ["02_fit.ipynb", "03_tradeoff.ipynb", "01_render.ipynb"]  # quick mode: ~36, 17, 9 s alone
 assert sorted(LONGEST_FIRST) == sorted(NAMES)
 
-
-class QuickRuns:
-    """Every committed notebook, outputs cleared and executed in quick mode, each by a
-    subprocess of its own: one after another in a background thread; `hurry` starts
-    the rest at once. Results: name → (executed notebook or None, the run's log,
-    seconds it ran)."""
-
-    def __init__(self):
-        self.out = tempfile.mkdtemp(prefix="rtjax_notebooks_")
-        # one persistent compilation cache for the three runs (see make_notebooks.QUICK_COMPILES)
-        self.env = dict(os.environ, RTJAX_NOTEBOOK_QUICK="1", JAX_COMPILATION_CACHE_DIR=os.path.join(self.out, "jax_cache"))
-        self.lock = threading.Lock()
-        self.pending = list(LONGEST_FIRST)
-        self.procs: dict[str, subprocess.Popen] = {}
-        self.done = {name: threading.Event() for name in NAMES}
-        self.results: dict[str, tuple[nbformat.NotebookNode | None, str, float]] = {}
-        self.stopped = False
-        threading.Thread(target=self._chain, daemon=True).start()
-
-    def _take(self, every: bool = False) -> list[str]:
-        with self.lock:
-            names = self.pending if every else self.pending[:1]
-            self.pending = self.pending[len(names):]
-            return names
-
-    def _chain(self):
-        while names := self._take():
-            self._run(names[0])
-
-    def _run(self, name: str):
-        log_path = os.path.join(self.out, name + ".log")
-        cmd = [sys.executable, SCRIPT, "--committed", "--quick", "--out", self.out, "--timeout", str(CELL_TIMEOUT), name]
-        t0 = time.perf_counter()
-        with open(log_path, "w") as log:
-            with self.lock:  # not after `stop`
-                proc = None if self.stopped else subprocess.Popen(
-                    cmd, cwd=ROOT, env=self.env, stdout=log, stderr=subprocess.STDOUT, text=True,
-                    preexec_fn=nice_subprocess, start_new_session=True)  # its own group: the kernel goes with it
-                if proc is not None:
-                    self.procs[name] = proc
-            try:
-                code = -1 if proc is None else proc.wait(timeout=RUN_TIMEOUT)
-            except subprocess.TimeoutExpired:
-                _kill(proc)
-                code = -1
-        with open(log_path) as f:
-            text = f.read() + ("" if code != -1 or proc is None else "\n(timed out)")
-        path = os.path.join(self.out, name)
-        nb = nbformat.read(path, as_version=4) if code == 0 and os.path.exists(path) else None
-        self.results[name] = (nb, text, time.perf_counter() - t0)
-        self.done[name].set()
-
-    def hurry(self):
-        """Start every run not started yet, side by side."""
-        for name in self._take(every=True):
-            threading.Thread(target=self._run, args=(name,), daemon=True).start()
-
-    def wait(self) -> dict[str, tuple[nbformat.NotebookNode | None, str, float]]:
-        self.hurry()
-        for name in NAMES:
-            self.done[name].wait()
-        return self.results
-
-    def stop(self):
-        with self.lock:
-            self.stopped, self.pending = True, []
-            procs = list(self.procs.values())
-        for proc in procs:
-            _kill(proc)
-        shutil.rmtree(self.out, ignore_errors=True)
+BACKGROUND_FOR = "executed"  # conftest.py: the runs start once a test that needs them is collected
+_JOBS: dict[str, Job] = {}
+_CACHE: list[str] = []
 
 
-def _kill(proc: subprocess.Popen):
-    if proc.poll() is None:
+def _cache() -> str:
+    """One persistent compilation cache for the three runs (see make_notebooks.QUICK_COMPILES)."""
+    if not _CACHE:
+        _CACHE.append(tempfile.mkdtemp(prefix="rtjax_notebooks_jax_cache_"))
+        atexit.register(shutil.rmtree, _CACHE[0], True)
+    return _CACHE[0]
+
+
+def _quick_run(name: str):
+    """The job: notebooks/NAME as committed, outputs cleared, executed in quick mode →
+    (executed notebook or None, the run's log, seconds it ran)."""
+
+    def run(job: Job):
+        out = tempfile.mkdtemp(prefix="rtjax_notebooks_")
         try:
-            os.killpg(proc.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-        proc.wait()
+            env = dict(os.environ, RTJAX_NOTEBOOK_QUICK="1", JAX_COMPILATION_CACHE_DIR=_cache())
+            cmd = [sys.executable, SCRIPT, "--committed", "--quick", "--out", out, "--timeout", str(CELL_TIMEOUT), name]
+            t0 = time.perf_counter()
+            with open(os.path.join(out, "log"), "w") as log:
+                proc = job.popen(cmd, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT, text=True)
+                try:
+                    proc.wait(timeout=RUN_TIMEOUT)
+                except subprocess.TimeoutExpired:
+                    kill_group(proc)
+            with open(os.path.join(out, "log")) as log:
+                text = log.read() + ("" if proc.returncode is not None and proc.returncode >= 0 else "\n(killed or timed out)")
+            path = os.path.join(out, name)
+            nb = nbformat.read(path, as_version=4) if proc.returncode == 0 and os.path.exists(path) else None
+            return nb, text, time.perf_counter() - t0
+        finally:
+            shutil.rmtree(out, ignore_errors=True)
+
+    return run
 
 
-BACKGROUND_FOR = "executed"  # conftest.py: start the runs once a test that needs them is collected
-_RUNS: list[QuickRuns] = []
-
-
-def start_background() -> QuickRuns:
-    if not _RUNS:
-        _RUNS.append(QuickRuns())
-    return _RUNS[0]
-
-
-def stop_background():
-    while _RUNS:
-        _RUNS.pop().stop()
+def background_jobs() -> list[Job]:
+    if not _JOBS:
+        _JOBS.update((name, Job(f"notebook {name}", _quick_run(name))) for name in LONGEST_FIRST)
+    return list(_JOBS.values())
 
 
 @pytest.fixture(scope="module")
 def executed() -> dict[str, tuple[nbformat.NotebookNode | None, str, float]]:
     """name → (executed notebook or None, the run's log, seconds it ran)."""
-    yield start_background().wait()
-    stop_background()
+    jobs = background_jobs()
+    for job in jobs:  # those not begun yet start now, side by side
+        job.begin()
+    yield {name: job.result() for name, job in _JOBS.items()}
+    for job in jobs:
+        job.stop()
 
 
 def _errors(nb) -> list[str]:
