@@ -22,24 +22,24 @@ from .errors import DeckError, RtjaxError
 MAX_SIDE = 16384
 
 
-def _positive_int(text: str) -> int:
+def _int_at_least(text: str, low: int, expected: str, expected_bound: str) -> int:
+    """`text` as a whole number ≥ `low` (an argparse type); the errors say "expected
+    `expected`" when it is not a whole number, "expected `expected_bound`" when too small."""
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, found {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a number ≥ 1, found {value}")
+        raise argparse.ArgumentTypeError(f"expected {expected}, found {text!r}") from None
+    if value < low:
+        raise argparse.ArgumentTypeError(f"expected {expected_bound}, found {value}")
     return value
+
+
+def _positive_int(text: str) -> int:
+    return _int_at_least(text, 1, "a whole number", "a number ≥ 1")
 
 
 def _depth(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number ≥ 0, found {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a whole number ≥ 0, found {value}")
-    return value
+    return _int_at_least(text, 0, "a whole number ≥ 0", "a whole number ≥ 0")
 
 
 def _edge_width(text: str) -> float:
@@ -93,13 +93,7 @@ def _plan(deck, args) -> list[tuple[object, str]]:
 def _devices(text: str) -> int | str:
     if text.strip().lower() == "all":
         return "all"
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number of devices or 'all', found {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a number ≥ 1 or 'all', found {value}")
-    return value
+    return _int_at_least(text, 1, "a number of devices or 'all'", "a number ≥ 1 or 'all'")
 
 
 def _start_distributed(args) -> None:

@@ -176,6 +176,32 @@ def scene_from_text(text: str, size: int | None = None, index: int = 0) -> rtjax
     return scene if size is None else scene.resized(size)
 
 
+#: The fitting tests' known truth (tests/test_fit.py, tests/test_multistart.py): two
+#: opaque spheres under one light; `truth_deck` adds the image width and the rend line.
+TRUTH_SCENE = """
+sphe -9 0 0 8
+opaq 0.9 0.3 0.2 0.4 12
+sphe 9 4 2 7
+opaq 0.2 0.6 0.9 0.3 8
+plig 0.4 -1 0.8 220 210 200
+elig 0.25
+back 10 20 60
+eyep 0 -50 10
+refp 0 0 0
+vang 60 45
+"""
+
+
+def truth_deck(width: int = 64) -> str:
+    return TRUTH_SCENE + f"size {width}\nrend truth.sunimg\n"
+
+
+@pytest.fixture(scope="module")
+def truth(request) -> rtjax.Scene:
+    """The fitting truth (`TRUTH_SCENE`) at the image width the test module sets as
+    TRUTH_WIDTH (default 64)."""
+    return scene_from_text(truth_deck(getattr(request.module, "TRUTH_WIDTH", 64)))
+
 
 @pytest.fixture(scope="session")
 def sample_deck_text() -> str:

@@ -67,9 +67,9 @@ def test_start_the_four_device_checks(four):
 SWEEP = SMALL + "rend a.ras\neyep -8 6 4\nrend b.ras\nelig 0.5\nrend c.ras\nsize 12\nrend d.ras\n"
 
 
-def test_frames_sharing_a_structure_render_in_one_call(monkeypatch):
-    scenes = [f.scene for f in rtjax.parse_deck(SWEEP).frames]
-    assert [i for _, i in batch.group_by_structure(scenes)] == [[0, 1, 2], [3]]
+@pytest.fixture
+def batch_calls(monkeypatch) -> list[int]:
+    """The frame count of every `batch.render_batch` call made during the test."""
     calls = []
     real = batch.render_batch
 
@@ -78,8 +78,14 @@ def test_frames_sharing_a_structure_render_in_one_call(monkeypatch):
         return real(structure, params, **kw)
 
     monkeypatch.setattr(batch, "render_batch", counting)
+    return calls
+
+
+def test_frames_sharing_a_structure_render_in_one_call(batch_calls):
+    scenes = [f.scene for f in rtjax.parse_deck(SWEEP).frames]
+    assert [i for _, i in batch.group_by_structure(scenes)] == [[0, 1, 2], [3]]
     images = rtjax.render_frames(scenes)
-    assert calls == [3]  # the three 16-pixel-wide frames in one call; the 12-pixel one alone
+    assert batch_calls == [3]  # the three 16-pixel-wide frames in one call; the 12-pixel one alone
     for scene, image in zip(scenes, images):
         assert np.array_equal(np.asarray(image), np.asarray(rtjax.render(scene)))
     assert np.shape(images[3]) == (9, 12, 3)
@@ -105,27 +111,19 @@ def test_batches_are_cut_to_bound_memory():
     assert [len(c) for c in batch.batch_chunks(big, 40, devices=4)] == [40]
 
 
-def test_cli_renders_shared_structures_batched(tmp_path, capsys, monkeypatch):
+def test_cli_renders_shared_structures_batched(tmp_path, capsys, batch_calls):
     """Frames 0-2 share a structure: one batched call, each line reporting a third of its
     time; the files equal frame-by-frame rendering (`--batch 1`)."""
-    calls = []
-    real = batch.render_batch
-
-    def counting(structure, params, **kw):
-        calls.append(int(np.shape(params.ke)[0]))
-        return real(structure, params, **kw)
-
-    monkeypatch.setattr(batch, "render_batch", counting)
     deck = write_deck(tmp_path, SWEEP)
     code, stdout, err = render_main(capsys, deck, "-o", tmp_path / "batched")
     assert code == 0, err
-    assert calls == [3]
+    assert batch_calls == [3]
     lines = stdout.splitlines()
     assert [line.split()[0] for line in lines] == [str(tmp_path / "batched" / f"{c}.ras") for c in "abcd"]
     assert len({line.split()[-2] for line in lines[:3]}) == 1  # the call's time, shared equally
     code, stdout, err = render_main(capsys, deck, "-o", tmp_path / "single", "--batch", "1")
     assert code == 0, err
-    assert calls == [3]  # --batch 1: no batched call
+    assert batch_calls == [3]  # --batch 1: no batched call
     for c in "abcd":
         assert np.array_equal(read_sunraster(tmp_path / "batched" / f"{c}.ras"), read_sunraster(tmp_path / "single" / f"{c}.ras"))
 

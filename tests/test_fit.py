@@ -11,30 +11,12 @@ import sys
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import ROOT, scene_from_text
+from conftest import ROOT
 
 import fitting
 import rtjax
 
-DECK = """
-sphe -9 0 0 8
-opaq 0.9 0.3 0.2 0.4 12
-sphe 9 4 2 7
-opaq 0.2 0.6 0.9 0.3 8
-plig 0.4 -1 0.8 220 210 200
-elig 0.25
-back 10 20 60
-eyep 0 -50 10
-refp 0 0 0
-vang 60 45
-size 64
-rend truth.sunimg
-"""
-
-
-@pytest.fixture(scope="module")
-def truth() -> rtjax.Scene:
-    return scene_from_text(DECK)
+# `truth`: conftest.py's fitting truth, 64 pixels wide
 
 
 @pytest.fixture(scope="module")

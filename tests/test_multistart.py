@@ -18,34 +18,17 @@ import tempfile
 
 import numpy as np
 import pytest
-from conftest import Job, scene_from_text
+from conftest import Job, truth_deck
 from test_batch import collect, launch
 
 import fitting
 import rtjax
 from rtjax import cli
 
-DECK = """
-sphe -9 0 0 8
-opaq 0.9 0.3 0.2 0.4 12
-sphe 9 4 2 7
-opaq 0.2 0.6 0.9 0.3 8
-plig 0.4 -1 0.8 220 210 200
-elig 0.25
-back 10 20 60
-eyep 0 -50 10
-refp 0 0 0
-vang 60 45
-size 48
-rend truth.sunimg
-"""
+TRUTH_WIDTH = 48  # conftest.py's `truth` fixture, at this width
+DECK = truth_deck(TRUTH_WIDTH)
 OFFSET = [[1.5, -1.0, 1.2], [-1.3, 1.0, -1.4]]
 OPTIONS = {"seed": 3, "spread": 0.4, "max_steps": 10, "polish": None}
-
-
-@pytest.fixture(scope="module")
-def truth() -> rtjax.Scene:
-    return scene_from_text(DECK)
 
 
 BACKGROUND_FOR = "runs"  # conftest.py: the 4-device fit starts once a test that needs it is collected
