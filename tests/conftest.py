@@ -156,7 +156,7 @@ def pytest_collection_finish(session):
     modules = []
     for item in session.items:
         module = getattr(item, "module", None)
-        if module not in modules and getattr(module, "BACKGROUND_FOR", None) in item.fixturenames:
+        if module not in modules and getattr(module, "BACKGROUND_FOR", None) in getattr(item, "fixturenames", ()):
             modules.append(module)
     for module in modules:
         _JOBS.extend(module.background_jobs())
