@@ -54,6 +54,8 @@ class Table(NamedTuple):
 
 
 def table(o, d, centers) -> Table:
+    """The `Table` of rays (o, d) (unit d) against spheres centred at `centers`, with
+    l = f − b·d formed explicitly (no cancellation in |f|² − b²)."""
     o, d, centers = jax.lax.stop_gradient((o, d, centers))
     c = centers.T[:, :, None]  # (3, N, 1)
     f = o[:, None, :] - c  # (3, N, P)
