@@ -37,7 +37,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .camera import subpixel_offsets
 from .errors import RtjaxError
-from .render import colours_at, default_tile, resolve_depth, resolve_dtype
+from .render import colours_at, resolve_options
 from .scene import Params, Scene, Structure
 from .spheres import GROUP, coherent_order, culls
 
@@ -222,16 +222,7 @@ def _render_grid(params, structure: Structure, depth: int, spp: int, tile: int, 
 
 
 def _check(structure: Structure, params: Params, depth, spp, dtype, edges, tile):
-    if int(spp) < 1:
-        raise RtjaxError(f"spp must be ≥ 1, not {spp}")
-    dtype = resolve_dtype(Scene(structure, params), dtype)
-    tile = default_tile() if tile is None else int(tile)
-    if tile < 1:
-        raise RtjaxError(f"tile must be ≥ 1, not {tile}")
-    edges = float(edges)
-    if not (0 <= edges <= 16):
-        raise RtjaxError(f"edges (an edge width in pixels) must be in [0, 16], not {edges}")
-    return resolve_depth(structure, depth), int(spp), dtype, edges, tile
+    return resolve_options(Scene(structure, params), depth, spp, dtype, edges, tile)
 
 
 def _global(tree, mesh: Mesh | None, spec: PartitionSpec):

@@ -65,6 +65,13 @@ def render(
 
     Differentiable in `scene.params` with jax.grad / jax.jacfwd / jax.jvp.
     """
+    depth, spp, dtype, edges, tile = resolve_options(scene, depth, spp, dtype, edges, tile)
+    return _render(scene.params.astype(dtype), scene.structure, depth, spp, tile, edges)
+
+
+def resolve_options(scene: Scene, depth, spp, dtype, edges, tile) -> tuple[int, int, jnp.dtype, float, int]:
+    """`render`'s options checked and resolved (a clear `RtjaxError` for a bad one):
+    depth, spp, dtype, edges, tile; `render_batch` and `render_frames` share them."""
     if int(spp) < 1:
         raise RtjaxError(f"spp must be ≥ 1, not {spp}")
     dtype = resolve_dtype(scene, dtype)
@@ -74,8 +81,7 @@ def render(
     edges = float(edges)
     if not (0 <= edges <= 16):
         raise RtjaxError(f"edges (an edge width in pixels) must be in [0, 16], not {edges}")
-    depth = resolve_depth(scene.structure, depth)
-    return _render(scene.params.astype(dtype), scene.structure, depth, int(spp), tile, edges)
+    return resolve_depth(scene.structure, depth), int(spp), dtype, edges, tile
 
 
 def default_tile() -> int:
