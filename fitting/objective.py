@@ -215,9 +215,10 @@ class Objective:
         `exact` level the pixel-centre render with the silhouette-aware render's
         derivative (its value swapped in under `stop_gradient`). A target rendered at
         pixel centres (as `rtjax render` makes them) is then matched exactly at the
-        truth, while edges still pull: a box-filtered model alone is biased there by a
-        few hundredths of a pixel, tenths of a unit in depth on the sample deck. With a
-        fitted blur (a photo-like target) every level is silhouette-aware."""
+        truth, while edges still pull; a box-filtered model differs from such a target
+        at every edge pixel even there (measured on the sample deck: largest centre
+        error 0.072 → 0.061 units, mean of four starts). With a fitted blur (a
+        photo-like target) every level is silhouette-aware."""
         scene = rtjax.Scene(self.selection.scene.structure, self.selection.params(y["scene"]))
         nuisance = y.get("nuisance", {})
         width = samples.width

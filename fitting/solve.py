@@ -144,10 +144,9 @@ def fit(
       one value, or one per level (the last repeating).
     polish: a last full-size level whose model values are pixel-centre colours, as in a
       target that `rtjax render` made (edges sharp), with the derivatives of the
-      silhouette-aware render of this edge width (default 1); None for none. Box-filtered
-      edges alone bias the optimum on such a target by a few hundredths of a pixel
-      (tenths of a unit in depth on the sample deck); the polish matches it exactly at
-      the truth (see `Objective.model`).
+      silhouette-aware render of this edge width (default 1); None for none. A
+      box-filtered model differs from such a target at every edge pixel, even at the
+      truth; the polish matches it exactly there (see `Objective.model`).
     loss: 'cauchy' (default, robust), 'huber', or 'l2'; `loss_scale` in levels.
     nuisance: fitted jointly with the scene for photo-like targets: 'gain' and 'gamma'
       (model = 255·(gain·I/255)^γ) and 'blur' (a Gaussian σ in pixels, as a wider box
