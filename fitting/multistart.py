@@ -205,7 +205,8 @@ def fit_multistart(
     max_steps: int = 30,
     levels: int | Sequence[int] | None = None,
     edges: float | Sequence[float] | None = None,
-    polish: float | None = 1.0,
+    polish: float | None = 0.02,
+    exact_polish: bool = False,
     depth: int | None = None,
     loss: str = "cauchy",
     loss_scale: float = 10.0,
@@ -256,7 +257,8 @@ def fit_multistart(
     t_start = time.perf_counter()
 
     full, selection, y, jac, widths, pyramid, objective = prepare_fit(
-        scene, target, free, spheres, depth, levels, edges, polish, loss, loss_scale, mask, nuisance, jac, assignment_order)
+        scene, target, free, spheres, depth, levels, edges, polish, loss, loss_scale, mask, nuisance, jac, assignment_order,
+        exact_polish)
     if mode == "auto":
         mode = "map" if mesh is None and jax.devices()[0].platform == "cpu" else "vmap"
     run = _Parallel(_Stepper(objective, SOLVERS[solver](rtol, atol), solver, jac), mesh, mode)

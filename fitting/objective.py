@@ -217,7 +217,8 @@ class Objective:
         pixel centres (as `rtjax render` makes them) is then matched exactly at the
         truth, while edges still pull; a box-filtered model differs from such a target
         at every edge pixel even there (measured on the sample deck: largest centre
-        error 0.072 → 0.061 units, mean of four starts). With a fitted blur (a
+        error 0.075 → 0.061 units, mean of four starts; but worse on another scene, see
+        `fit`'s exact_polish). With a fitted blur (a
         photo-like target) every level is silhouette-aware."""
         scene = rtjax.Scene(self.selection.scene.structure, self.selection.params(y["scene"]))
         nuisance = y.get("nuisance", {})

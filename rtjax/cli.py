@@ -242,6 +242,7 @@ def cmd_fit(args) -> int:
         levels=args.levels if args.levels is None or len(args.levels) > 1 else args.levels[0],
         edges=args.edges,
         polish=args.polish or None,
+        exact_polish=args.exact_polish,
         loss=args.loss,
         loss_scale=args.loss_scale,
         nuisance=args.nuisance.split(",") if args.nuisance else (),
@@ -341,8 +342,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--max-steps", type=_positive_int, default=30, help="iterations in all (default 30)")
     f.add_argument("--levels", type=_int_list, default=None, help="coarse-to-fine: a count of levels, or widths such as 100,200,400 (default 3)")
     f.add_argument("--edges", type=_float_list, default=None, help="edge width per level in pixels, e.g. 2,1,1 (default 1)")
-    f.add_argument("--polish", type=float, default=1.0,
-                   help="a last full-size level matched at pixel centres, with silhouette-aware derivatives of this edge width (default 1; 0: none)")
+    f.add_argument("--polish", type=float, default=0.02, help="edge width of a last full-size polishing level (default 0.02; 0: none)")
+    f.add_argument("--exact-polish", action="store_true",
+                   help="match the polishing level at pixel centres, with silhouette-aware derivatives of width --polish (then use 1)")
     f.add_argument("--loss", choices=("l2", "huber", "cauchy"), default="cauchy", help="residual loss (default cauchy: robust)")
     f.add_argument("--loss-scale", type=float, default=10.0, help="robust loss scale in levels (default 10)")
     f.add_argument("--nuisance", default="", help="also fit a camera response: gain,gamma")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from conftest import scene_from_text
 
 import rtjax
@@ -57,3 +58,17 @@ def test_apply_nuisance_takes_the_units_fit_reports():
     np.testing.assert_allclose(np.asarray(apply_nuisance(image, {"gain": 1.5, "gamma": 0.8}))[0, 0], expect, rtol=1e-6)
     logs = {"gain": np.log(1.5), "gamma": np.log(0.8), "blur": 0.0}
     np.testing.assert_allclose(np.asarray(apply_nuisance(image, logs, logs=True))[0, 0], expect, rtol=1e-6)
+
+
+def test_only_an_exact_polish_makes_an_exact_level():
+    from fitting.solve import prepare_fit
+
+    scene = scene_from_text(DECK)
+    target = np.zeros((scene.structure.height, scene.structure.width, 3))
+    args = (target, "centers", None, None, None, None, 0.02, "cauchy", 10.0, None, (), None, False)
+    pyramid = prepare_fit(scene, *args)[5]
+    assert [float(s.exact) for s in pyramid] == [0.0] * len(pyramid)
+    pyramid = prepare_fit(scene, *args, exact_polish=True)[5]
+    assert [float(s.exact) for s in pyramid] == [0.0] * (len(pyramid) - 1) + [1.0]
+    assert float(pyramid[-1].width) == pytest.approx(0.02)
+    assert prepare_fit(scene, *args[:6], None, *args[7:], exact_polish=True)[5][-1].exact == 0  # no polish: none exact
