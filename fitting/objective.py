@@ -209,6 +209,9 @@ class Objective:
     depth: int | None
     loss: str
     loss_scale: float
+    #: some level is `exact` (an exact polish): only then is the pixel-centre render
+    #: compiled into the step (a level's flag is traced; this one is static)
+    exact_levels: bool = False
 
     def model(self, y: dict, samples: Samples):
         """The model's colours at the samples: the silhouette-aware render, or on an
@@ -218,8 +221,8 @@ class Objective:
         truth, while edges still pull; a box-filtered model differs from such a target
         at every edge pixel even there (measured on the sample deck: largest centre
         error 0.075 → 0.061 units, mean of four starts; but worse on another scene, see
-        `fit`'s exact_polish). With a fitted blur (a
-        photo-like target) every level is silhouette-aware."""
+        `fit`'s exact_polish). With a fitted blur (a photo-like target) every level is
+        silhouette-aware."""
         scene = rtjax.Scene(self.selection.scene.structure, self.selection.params(y["scene"]))
         nuisance = y.get("nuisance", {})
         width = samples.width
@@ -234,7 +237,7 @@ class Objective:
             sharp = rtjax.render_samples(scene, samples.xy, step=samples.step, depth=self.depth)
             return jax.lax.stop_gradient(sharp - aware)
 
-        if "blur" not in nuisance:  # a blurred target has no sharp edges to match
+        if self.exact_levels and "blur" not in nuisance:  # a blurred target has no sharp edges to match
             colours = colours + jax.lax.cond(samples.exact > 0, centres, jnp.zeros_like, jax.lax.stop_gradient(colours))
         return apply_nuisance(colours, nuisance, logs=True)
 

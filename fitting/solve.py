@@ -99,7 +99,7 @@ def prepare_fit(scene, target, free, spheres, depth, levels, edges, polish, loss
     if polish:
         widths, per_level, exact = widths + [widths[-1]], per_level + [float(polish)], exact + [bool(exact_polish)]
     pyramid = make_levels(target, prepare_mask(mask, *target.shape[:2]), widths, per_level, dtype, exact=exact)
-    objective = Objective(selection, depth, loss, loss_scale)
+    objective = Objective(selection, depth, loss, loss_scale, exact_levels=any(exact))
     return full, selection, y, jac, widths, pyramid, objective
 
 

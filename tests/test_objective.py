@@ -34,7 +34,7 @@ def test_exact_level_values_are_pixel_centres_and_derivatives_the_aware_ones():
     w = scene.structure.width
     soft, exact = make_levels(target, weight, [w, w], [1.0, 1.0], jnp.float64, exact=[False, True])
     selection = Selection(scene, "centers", None)
-    objective = Objective(selection, None, "l2", 10.0)
+    objective = Objective(selection, None, "l2", 10.0, exact_levels=True)
     y = {"scene": selection.y0()}
 
     plain = np.asarray(rtjax.render(scene)).reshape(-1, 3)
@@ -66,9 +66,11 @@ def test_only_an_exact_polish_makes_an_exact_level():
     scene = scene_from_text(DECK)
     target = np.zeros((scene.structure.height, scene.structure.width, 3))
     args = (target, "centers", None, None, None, None, 0.02, "cauchy", 10.0, None, (), None, False)
-    pyramid = prepare_fit(scene, *args)[5]
+    pyramid, objective = prepare_fit(scene, *args)[5:]
     assert [float(s.exact) for s in pyramid] == [0.0] * len(pyramid)
-    pyramid = prepare_fit(scene, *args, exact_polish=True)[5]
+    assert not objective.exact_levels  # no pixel-centre render compiled into the step
+    pyramid, objective = prepare_fit(scene, *args, exact_polish=True)[5:]
+    assert objective.exact_levels
     assert [float(s.exact) for s in pyramid] == [0.0] * (len(pyramid) - 1) + [1.0]
     assert float(pyramid[-1].width) == pytest.approx(0.02)
     assert prepare_fit(scene, *args[:6], None, *args[7:], exact_polish=True)[5][-1].exact == 0  # no polish: none exact
