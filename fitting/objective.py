@@ -128,15 +128,16 @@ def apply_nuisance(image, nuisance: dict, *, logs: bool = False):
 
 class Samples(NamedTuple):
     """One pyramid level: K image positions (pixels of the full image), the spacing they
-    stand for, and the target (and mask weight) there. K is the same on every level, so
-    one compiled residual function serves them all."""
+    stand for, and the target (and mask weight) there. K is the same on every level but
+    an exact one, so one compiled residual function serves them all (`exact` is static:
+    an exact level has its own)."""
 
     xy: jnp.ndarray  # (K, 2)
     step: jnp.ndarray  # ()
     target: jnp.ndarray  # (K, 3)
     weight: jnp.ndarray  # (K, 1)
     width: jnp.ndarray  # () edge width in this level's pixels
-    exact: jnp.ndarray  # () 1: model values are pixel-centre colours (see `Objective.model`)
+    exact: bool  # matched at pixel centres (see `Objective.model`)
 
 
 def level_grid(width: int, height: int, w: int) -> tuple[int, np.ndarray, float]:
@@ -177,8 +178,10 @@ def make_levels(target: np.ndarray, weight: np.ndarray, widths: Sequence[int], e
     """The coarse-to-fine pyramid as `Samples` of one size K (the coarsest level's pixel
     count): the coarsest level is its whole grid of area-averaged pixels; finer levels
     take K of their pixels, those near the target's edges first (where positions are
-    decided), then a random spread of the rest. `exact`: per level, whether its model
-    values are pixel-centre colours (default: none)."""
+    decided), then a random spread of the rest. `exact`: per level, whether it is
+    matched at pixel centres (default: none); such a level takes all its pixels near
+    edges and as many others (at least K in all): at pixel centres, positions are
+    decided by which side of each edge pixel centres fall on, so every one counts."""
     height, width = target.shape[:2]
     rng = np.random.default_rng(seed)
     levels = []
@@ -189,15 +192,20 @@ def make_levels(target: np.ndarray, weight: np.ndarray, widths: Sequence[int], e
         small = target if (h, w) == (height, width) else downsample(target, h, w)
         wsmall = weight if (h, w) == (height, width) else downsample(weight, h, w)
         t, wt = small.reshape(-1, 3), wsmall.reshape(-1, 1)
-        if k is None or len(xy) <= k:  # the coarsest level, or one no larger: all of it
-            k = len(xy) if k is None else k
-            pick = np.arange(k)
+        band = np.flatnonzero(edge_band(small).ravel())
+        size = k if k is not None else len(xy)
+        if x:
+            size = max(size, 2 * len(band))
+            take = len(band)
         else:
-            band = np.flatnonzero(edge_band(small).ravel())
+            k = size
+            take = min(len(band), (3 * size) // 4)
+        if len(xy) <= size:  # the coarsest level, or one no larger: all of it
+            pick = np.arange(len(xy))
+        else:
             rest = np.setdiff1d(np.arange(len(xy)), band)
-            take = min(len(band), (3 * k) // 4)
-            pick = np.concatenate([rng.choice(band, take, replace=False), rng.choice(rest, k - take, replace=False)])
-        levels.append(Samples(*(jnp.asarray(a, dtype) for a in (xy[pick], step, t[pick], wt[pick], e, float(x)))))
+            pick = np.concatenate([rng.choice(band, take, replace=False), rng.choice(rest, size - take, replace=False)])
+        levels.append(Samples(*(jnp.asarray(a, dtype) for a in (xy[pick], step, t[pick], wt[pick], e)), bool(x)))
     return levels
 
 
@@ -209,20 +217,20 @@ class Objective:
     depth: int | None
     loss: str
     loss_scale: float
-    #: some level is `exact` (an exact polish): only then is the pixel-centre render
-    #: compiled into the step (a level's flag is traced; this one is static)
-    exact_levels: bool = False
 
     def model(self, y: dict, samples: Samples):
         """The model's colours at the samples: the silhouette-aware render, or on an
-        `exact` level the pixel-centre render with the silhouette-aware render's
-        derivative (its value swapped in under `stop_gradient`). A target rendered at
-        pixel centres (as `rtjax render` makes them) is then matched exactly at the
-        truth, while edges still pull; a box-filtered model differs from such a target
-        at every edge pixel even there (measured on the sample deck: largest centre
-        error 0.075 → 0.061 units, mean of four starts; but worse on another scene, see
-        `fit`'s exact_polish). With a fitted blur (a photo-like target) every level is
-        silhouette-aware."""
+        `exact` level its sided form, which matches a target sampled at pixel centres
+        (as `rtjax render` makes them) exactly at the truth.
+
+        A box-filtered edge pixel differs from such a target even at the truth: there
+        the target holds the colour of whichever side the pixel's centre lies on. The
+        sided form takes the side the target shows (its colour nearer the render's
+        `inside` or `outside` colour) and blends with α = clip(x + 1, 0, 1) for the
+        edge sphere's side or clip(x, 0, 1) for the other (x: the centre's signed
+        distance to the edge in box widths): the colour of the target's side while the
+        centre lies there, a linear penalty within one box width beyond. With a fitted
+        blur (a photo-like target) every level is silhouette-aware."""
         scene = rtjax.Scene(self.selection.scene.structure, self.selection.params(y["scene"]))
         nuisance = y.get("nuisance", {})
         width = samples.width
@@ -231,15 +239,21 @@ class Objective:
             # width √12·σ has the same variance; widths add in quadrature
             sigma = jnp.exp(nuisance["blur"]) / samples.step
             width = jnp.sqrt(width**2 + 12 * sigma**2)
-        colours = rtjax.render_samples(scene, samples.xy, step=samples.step, depth=self.depth, edges=width)
+        def aware(_):
+            colours = rtjax.render_samples(scene, samples.xy, step=samples.step, depth=self.depth, edges=width)
+            return apply_nuisance(colours, nuisance, logs=True)
 
-        def centres(aware):
-            sharp = rtjax.render_samples(scene, samples.xy, step=samples.step, depth=self.depth)
-            return jax.lax.stop_gradient(sharp - aware)
+        def sided(_):
+            e = rtjax.render_samples(scene, samples.xy, step=samples.step, depth=self.depth, edges=width, parts=True)
+            centre, inside, outside = (apply_nuisance(c, nuisance, logs=True) for c in (e.centre, e.inside, e.outside))
+            sg = jax.lax.stop_gradient
+            shows_inside = jnp.sum((samples.target - sg(inside)) ** 2, -1) < jnp.sum((samples.target - sg(outside)) ** 2, -1)
+            alpha = jnp.clip(e.x + shows_inside, 0, 1)[:, None]
+            on_inside = (e.x > 0)[:, None]  # the centre's own side: its exact colour is the centre's
+            return alpha * jnp.where(on_inside, centre, inside) + (1 - alpha) * jnp.where(on_inside, outside, centre)
 
-        if self.exact_levels and "blur" not in nuisance:  # a blurred target has no sharp edges to match
-            colours = colours + jax.lax.cond(samples.exact > 0, centres, jnp.zeros_like, jax.lax.stop_gradient(colours))
-        return apply_nuisance(colours, nuisance, logs=True)
+        # a blurred target has no sharp edges to match
+        return sided(None) if samples.exact and "blur" not in nuisance else aware(None)
 
     def residuals(self, y: dict, samples: Samples):
         r = (self.model(y, samples) - samples.target) * samples.weight / 255
@@ -263,5 +277,6 @@ def prepare_mask(mask, height: int, width: int) -> np.ndarray:
     if m.ndim == 3:
         m = m.mean(axis=2)
     if m.shape != (height, width):
-        raise FitError(f"the mask is {m.shape[1]}×{m.shape[0]}, the target {width}×{height}")
+        size = f"{m.shape[1]}×{m.shape[0]}" if m.ndim == 2 else f"of shape {m.shape}"
+        raise FitError(f"the mask is {size}, the target {width}×{height}")
     return m[..., None]

@@ -21,7 +21,7 @@ from .atomic import atomic_path as atomic_path, atomic_write as atomic_write
 from .camera import image_height as image_height
 from .errors import DeckError as DeckError, ImageError as ImageError, RtjaxError as RtjaxError
 from .images import load_image as load_image, save_image as save_image, to_uint8 as to_uint8
-from .render import render as render, render_samples as render_samples
+from .render import EdgeSamples as EdgeSamples, render as render, render_samples as render_samples
 from .batch import (device_mesh as device_mesh, init_distributed as init_distributed, render_batch as render_batch,
                     render_frames as render_frames, render_sharded as render_sharded, stack_params as stack_params)
 from .scene import DEFAULT_DEPTH as DEFAULT_DEPTH, Params as Params, Scene as Scene, Structure as Structure

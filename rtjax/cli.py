@@ -342,9 +342,11 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--max-steps", type=_positive_int, default=30, help="iterations in all (default 30)")
     f.add_argument("--levels", type=_int_list, default=None, help="coarse-to-fine: a count of levels, or widths such as 100,200,400 (default 3)")
     f.add_argument("--edges", type=_float_list, default=None, help="edge width per level in pixels, e.g. 2,1,1 (default 1)")
-    f.add_argument("--polish", type=float, default=0.02, help="edge width of a last full-size polishing level (default 0.02; 0: none)")
-    f.add_argument("--exact-polish", action="store_true",
-                   help="match the polishing level at pixel centres, with silhouette-aware derivatives of width --polish (then use 1)")
+    f.add_argument("--polish", type=float, default=1.0,
+                   help="edge width in pixels of the full-size level (default 1; 0: no special full-size level)")
+    f.add_argument("--exact-polish", action=argparse.BooleanOptionalAction, default=True,
+                   help="match the full-size level at pixel centres, as rtjax render makes targets (default); "
+                        "--no-exact-polish: a last box-filtered level --polish wide (then use e.g. 0.02), for antialiased targets")
     f.add_argument("--loss", choices=("l2", "huber", "cauchy"), default="cauchy", help="residual loss (default cauchy: robust)")
     f.add_argument("--loss-scale", type=float, default=10.0, help="robust loss scale in levels (default 10)")
     f.add_argument("--nuisance", default="", help="also fit a camera response: gain,gamma")

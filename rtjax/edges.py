@@ -169,13 +169,16 @@ def _nearest(score):
     return jnp.where(jnp.isfinite(best), idx, -1).astype(jnp.int32)
 
 
-def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, dpx, dpy, width: float):
+def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, dpx, dpy, width: float, sharp: bool = False):
     """Visibility of one light at each hit, its nearest shadow edge box-filtered.
 
     The hard visibility of every other occluder times the soft factor 1 − (1 − τ)·α of
     the nearest edge within reach (τ: 0, or kt² for glass; α: fraction of the pixel's
     footprint on the surface inside that occluder's shadow cylinder). The hit's own
     sphere stays hard: its terminator is already continuous in max(N·L, 0).
+
+    `sharp`: the value at the pixel's centre (the edge's hard factor) with the
+    box-filtered factor's derivative, what a target sampled at pixel centres shows.
     """
     n = centers.shape[0]
     ray = jnp.broadcast_to(light[:, None], hit.point.shape)
@@ -190,7 +193,10 @@ def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, dpx, dpy,
     c, r = _chosen_or_regular(edge, hit.point, ray, centers, radii)
     delta_e, nx, ny, _, _ = edge_terms(hit.point, ray, dpx, still, dpy, still, c, r)
     # |δ| ≥ width (a candidate only by the bound): α is 0 or 1, the hard factor exactly
-    soft = 1 - (1 - factor[jnp.maximum(edge, 0)]) * coverage(-delta_e / width, nx, ny)
+    blocked = 1 - factor[jnp.maximum(edge, 0)]
+    soft = 1 - blocked * coverage(-delta_e / width, nx, ny)
+    if sharp:
+        soft = jax.lax.stop_gradient(1 - blocked * (delta_e < 0) - soft) + soft
     return hard * jnp.where(edge >= 0, soft, 1)
 
 
@@ -250,6 +256,7 @@ class Sides(NamedTuple):
 
     edge: Int[Array, " p"]
     alpha: Float[Array, " p"]
+    x: Float[Array, " p"]  # the pixel centre's signed distance to the edge in box widths, > 0 inside
     o_in: Float[Array, "3 p"]
     d_in: Float[Array, "3 p"]
     o_out: Float[Array, "3 p"]
@@ -268,4 +275,4 @@ def both_sides(best: Best, centers, radii, width: float) -> Sides:
         sx, sy = -z * width * nx, -z * width * ny
         return r0.o + sx * df.ox + sy * df.oy, normalize(r0.d + sx * df.dx + sy * df.dy)
 
-    return Sides(best.edge, alpha, *ray(z_in), *ray(z_out))
+    return Sides(best.edge, alpha, -delta / width, *ray(z_in), *ray(z_out))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -111,10 +112,11 @@ def _render(params: Params, structure: Structure, depth: int, spp: int, tile: in
     return image.reshape(3, s.height, s.width).transpose(1, 2, 0)
 
 
-def colours_at(s: Structure, p: Params, xy, step, depth: int, tile: int, edges: float):
+def colours_at(s: Structure, p: Params, xy, step, depth: int, tile: int, edges: float, parts: bool = False):
     """Clamped colours (3, K) seen through image positions xy (2, K) (pixels of the
     scene's image). In the silhouette mode, `step` is the sample spacing in pixels: the
-    box over which edges are filtered is `edges`·`step` pixels wide."""
+    box over which edges are filtered is `edges`·`step` pixels wide; `parts`: (10, K),
+    the centre colours and the edge blend's parts (`trace.trace_edges`)."""
     if isinstance(edges, (int, float)) and edges == 0:
         o, d = rays_through(p.eye, p.refp, p.vang, s.width, s.height, xy)
         return jnp.clip(tiled(lambda o, d: trace(s, p, o, d, depth), tile, o, d), 0, 255)
@@ -129,9 +131,22 @@ def colours_at(s: Structure, p: Params, xy, step, depth: int, tile: int, edges: 
     still = jnp.zeros_like(d)  # all primary rays leave the eye
 
     def run(o, d, ox, dx, oy, dy):
-        return trace_edges(s, p, o, d, Differentials(ox, dx, oy, dy), depth, edges)
+        return trace_edges(s, p, o, d, Differentials(ox, dx, oy, dy), depth, edges, parts)
 
     return tiled(run, tile, o, d, still, dx, still, dy)
+
+
+class EdgeSamples(NamedTuple):
+    """`render_samples(..., parts=True)`: what matching a target sampled at pixel
+    centres needs. The colour at each sample's centre (shadow edges sharp, with the
+    box-filtered derivative) and, for its nearest silhouette, the colours traced on the
+    edge sphere's side and on the other, and the centre's signed distance to that edge.
+    Without an edge, inside = outside = centre and x = 0."""
+
+    centre: Float[Array, "k 3"]
+    inside: Float[Array, "k 3"]  # traced on the edge sphere's side
+    outside: Float[Array, "k 3"]  # traced on the other side
+    x: Float[Array, " k"]  # the centre's signed distance to the edge in box widths, > 0 inside
 
 
 def render_samples(
@@ -143,7 +158,8 @@ def render_samples(
     edges: float = 0.0,
     dtype=None,
     tile: int | None = None,
-) -> Float[Array, "k 3"]:
+    parts: bool = False,
+) -> Float[Array, "k 3"] | EdgeSamples:
     """Colours (K, 3) in 0..255 seen through K image positions `xy` (K, 2), in pixels of
     the scene's image ((i + ½, j + ½) is pixel (i, j)'s centre).
 
@@ -151,6 +167,8 @@ def render_samples(
     grid and then a band of pixels around edges with one compiled function (K fixed;
     positions, `step` and a non-zero `edges` traced). `step` is the spacing the samples
     stand for, in pixels: with `edges`, edges are box-filtered over `edges`·`step` pixels.
+    `parts` (with `edges`): an `EdgeSamples` instead, the centre colours and the edge
+    blend's parts (fitting uses them to match a target sampled at pixel centres).
     """
     dtype = resolve_dtype(scene, dtype)
     tile = default_tile() if tile is None else int(tile)
@@ -159,10 +177,14 @@ def render_samples(
         raise RtjaxError(f"xy must have shape (K, 2), not {xy.shape}")
     depth = resolve_depth(scene.structure, depth)
     aware = not (isinstance(edges, (int, float)) and edges == 0)  # a traced width means the mode is on
+    if parts and not aware:
+        raise RtjaxError("parts=True needs the silhouette-aware mode (edges > 0)")
     width = jnp.asarray(edges, dtype)
-    return _render_samples(scene.params.astype(dtype), xy.T, jnp.asarray(step, dtype), width, scene.structure, depth, tile, aware)
+    out = _render_samples(scene.params.astype(dtype), xy.T, jnp.asarray(step, dtype), width, scene.structure, depth, tile,
+                          aware, parts)
+    return EdgeSamples(out[:3].T, out[3:6].T, out[6:9].T, out[9]) if parts else out.T
 
 
-@functools.partial(jax.jit, static_argnames=("structure", "depth", "tile", "aware"))
-def _render_samples(params: Params, xy, step, width, structure: Structure, depth: int, tile: int, aware: bool):
-    return colours_at(structure, params, xy, step, depth, tile, width if aware else 0).T
+@functools.partial(jax.jit, static_argnames=("structure", "depth", "tile", "aware", "parts"))
+def _render_samples(params: Params, xy, step, width, structure: Structure, depth: int, tile: int, aware: bool, parts: bool):
+    return colours_at(structure, params, xy, step, depth, tile, width if aware else 0, parts)

@@ -64,7 +64,8 @@ def surface_colour(s: Structure, p: Params, m: Material, idx, normal_out) -> Flo
 def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, soft=None) -> Float[Array, "3 p"]:
     """Local light at each hit: Σ over lights of ambient, diffuse and specular with shadows.
 
-    `soft` = (∂P/∂x, ∂P/∂y, width): box-filter the nearest shadow edge (silhouette mode).
+    `soft` = (∂P/∂x, ∂P/∂y, width, sharp): box-filter the nearest shadow edge
+    (silhouette mode; `sharp`: its value at the centre, see `edges.soft_shadow`).
     """
     total = jnp.zeros_like(n)
     if s.n_lights == 0:
@@ -123,6 +124,7 @@ def segment(
     toggles=None,
     diff: "edges.Differentials | None" = None,
     width: float = 0.0,
+    sharp: bool = False,
 ):
     """One segment of the chain for every ray: hit, local light, the next ray.
 
@@ -136,7 +138,7 @@ def segment(
     entering = hit.entering
     n = jnp.where(entering, hit.normal_out, -hit.normal_out)
     moves = None if diff is None else edges.hit_motion(hit, o, d, diff)
-    soft = None if moves is None else (moves[0], moves[1], width)
+    soft = None if moves is None else (moves[0], moves[1], width, sharp)
     local = shade_hit(s, p, m, hit, n, -d, soft)
     colour = rays.colour + rays.weight * jnp.where(hit.found, local, p.background[:, None])
     if not s.needs_secondary_rays:
@@ -183,7 +185,7 @@ def _gather(tree, sel):
     return jax.tree_util.tree_map(lambda a: a[..., sel], tree)
 
 
-def _chain(s, p, m, rays, depth, diff=None, width=0.0, toggles=None, watch=None):
+def _chain(s, p, m, rays, depth, diff=None, width=0.0, toggles=None, watch=None, sharp=False):
     """Segments until `rays.level` passes `depth`: one `lax.scan` body (compiled once,
     whatever the depth), each segment skipped at run time by a `lax.cond` once no ray is
     alive (both modes of differentiation go through `lax.cond`). `toggles` alter the
@@ -198,7 +200,7 @@ def _chain(s, p, m, rays, depth, diff=None, width=0.0, toggles=None, watch=None)
 
     `watch(rays, diff, hit, best)` → best is folded over the segments (silhouette mode)."""
     if not s.needs_secondary_rays:
-        rays2, _, hit = segment(s, p, m, rays, depth, toggles, diff, width)
+        rays2, _, hit = segment(s, p, m, rays, depth, toggles, diff, width, sharp)
         return rays2, None if watch is None else watch(rays, diff, hit, watch.empty(rays, diff))
     if toggles is None:
         toggles = (jnp.full(rays.weight.shape, -1, jnp.int32),) * 2
@@ -208,7 +210,7 @@ def _chain(s, p, m, rays, depth, diff=None, width=0.0, toggles=None, watch=None)
     def body(carry, _, nxt):
         def run(c):
             r, df, tg, b = c
-            r2, df2, h = segment(s, p, m, r, depth, tg, df, width)
+            r2, df2, h = segment(s, p, m, r, depth, tg, df, width, sharp)
             off = jnp.full_like(tg[0], -1)
             return r2, df2, (off, off), (b if watch is None else watch(r, df, h, b))
 
@@ -250,7 +252,8 @@ def edge_capacity(n: int) -> int:
     return min(n, max(4096, n // 4))
 
 
-def trace_edges(s: Structure, p: Params, o, d, diff: "edges.Differentials", depth: int, width: float) -> Float[Array, "3 p"]:
+def trace_edges(s: Structure, p: Params, o, d, diff: "edges.Differentials", depth: int, width: float,
+                parts: bool = False) -> Float[Array, "3 p"] | Float[Array, "10 p"]:
     """The silhouette-aware colour of each pixel, clamped.
 
     Pass 1 traces the chain with ray differentials and soft shadow edges, and finds the
@@ -260,10 +263,16 @@ def trace_edges(s: Structure, p: Params, o, d, diff: "edges.Differentials", dept
     centroids of their parts of the pixel (the edge sphere removed on one side, met on
     the other), and blends them by the box-filtered coverage (see `rtjax.edges`): its
     cost follows the edges' length, not the image's area.
+
+    `parts`: instead, (10, P): the colour at the pixel's centre, its shadow edges sharp
+    with their box-filtered derivative (`edges.soft_shadow`); the colours traced on the
+    edge sphere's side and on the other (both the centre's colour where a pixel has no
+    edge); and the centre's signed distance to the edge in box widths, positive on the
+    sphere's side (0 where none).
     """
     m = prepare(s, p)
     watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width)
-    rays, best = _chain(s, p, m, start_rays(o, d), depth, diff, width, watch=watch)
+    rays, best = _chain(s, p, m, start_rays(o, d), depth, diff, width, watch=watch, sharp=parts)
     plain = jnp.clip(rays.colour, 0, 255)
     n = o.shape[1]
     cap = edge_capacity(n)
@@ -281,15 +290,19 @@ def trace_edges(s: Structure, p: Params, o, d, diff: "edges.Differentials", dept
                  two(jnp.where(valid, r0.weight, 0)), two(r0.colour), two(r0.level))
     none = jnp.full((cap,), -1, jnp.int32)
     twice = edges.Differentials(*(two(a) for a in b.diff))
-    out, _ = _chain(s, p, m, start, depth, twice, width, (two(none, side.edge), two(side.edge, none)))
+    out, _ = _chain(s, p, m, start, depth, twice, width, (two(none, side.edge), two(side.edge, none)), sharp=parts)
     inside, outside = jnp.split(jnp.clip(out.colour, 0, 255), 2, axis=-1)
     mixed = side.alpha * inside + (1 - side.alpha) * outside
     # padding slots (index 0 repeated) write nowhere: pixel 0 may itself be an edge pixel
-    return plain.at[:, jnp.where(valid, sel, n)].set(mixed, mode="drop")
+    to = jnp.where(valid, sel, n)
+    if not parts:
+        return plain.at[:, to].set(mixed, mode="drop")
+    rows = jnp.concatenate([plain, plain, plain, jnp.zeros_like(plain[:1])])
+    return rows.at[3:, to].set(jnp.concatenate([inside, outside, side.x[None]]), mode="drop")
 
 
 def tiled(fn, tile: int, *arrays):
-    """fn(*arrays) → (3, P), run over tiles of `tile` rays one after another (`lax.map`)
+    """fn(*arrays) → (R, P), run over tiles of `tile` rays one after another (`lax.map`)
     when P > tile: bounds memory on large images (the image does not depend on it)."""
     n = arrays[0].shape[-1]
     if n <= tile:
@@ -302,4 +315,4 @@ def tiled(fn, tile: int, *arrays):
         return jnp.moveaxis(a.reshape(a.shape[:-1] + (count, tile)), -2, 0)
 
     out = jax.lax.map(lambda a: fn(*a), jax.tree_util.tree_map(split, arrays))
-    return jnp.moveaxis(out, 0, -2).reshape(3, count * tile)[:, :n]
+    return jnp.moveaxis(out, 0, -2).reshape(out.shape[1], count * tile)[:, :n]

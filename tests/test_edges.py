@@ -311,3 +311,60 @@ def test_silhouette_seen_through_glass(axis):
     assert c >= 0.99, f"cosine similarity {c:.4f}"
     if axis in "xz":
         assert abs(ad.sum() - fd.sum()) <= 0.05 * abs(fd.sum())
+
+
+# --------------------------------------------------------------------------------------
+# (f) the blend's parts (`render_samples(parts=True)`), what fitting at pixel centres uses
+
+
+def _pixel_centres(s: rtjax.Scene):
+    j, i = np.mgrid[0 : s.structure.height, 0 : s.structure.width]
+    return np.stack([i.ravel() + 0.5, j.ravel() + 0.5], -1)
+
+
+@pytest.mark.parametrize("name", ["occlusion", "shadow"])
+def test_parts_centre_is_the_plain_colour_and_sides_straddle_it(name):
+    s = scene(name)
+    depth = DECKS[name][1]
+    e = rtjax.render_samples(s, _pixel_centres(s), depth=depth, edges=WIDTH, parts=True)
+    flat = plain(name).reshape(-1, 3)
+    # values at pixel centres, shadow edges included (sharp)
+    np.testing.assert_allclose(np.asarray(e.centre), flat, rtol=0, atol=1e-9)
+    x, inside, outside = np.asarray(e.x), np.asarray(e.inside), np.asarray(e.outside)
+    edge = x != 0
+    assert 20 < edge.sum() < flat.shape[0] // 4
+    np.testing.assert_allclose(inside[~edge], flat[~edge], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(outside[~edge], flat[~edge], rtol=0, atol=1e-9)
+    assert np.abs(x[edge]).max() < 1  # edges are searched within one box width
+    # the centre's colour is the one traced on its own side (x > 0: the edge sphere's)
+    own = np.where(edge[:, None] & (x[:, None] > 0), inside, outside)
+    other = np.where(x[:, None] > 0, outside, inside)
+    sharp = edge & (np.abs(inside - outside).max(1) > 40)
+    assert sharp.sum() > 10
+    assert np.all(np.abs(own - flat).max(1)[sharp] < np.abs(other - flat).max(1)[sharp])
+
+
+def test_parts_centre_carries_the_shadow_edges_derivative():
+    """Sharp in value, the shadow edge's motion is in the centre colour's derivative: the
+    same as the box-filtered render's on the floor, where the plain render has none."""
+    s = scene("shadow")
+    xy = _pixel_centres(s)
+
+    def d_centre(fn):
+        t = jnp.zeros_like(s.params.centers).at[0, 0].set(1.0)  # the occluder along x
+        return np.asarray(jax.jvp(lambda c: fn(s.replace(centers=c)), (s.params.centers,), (t,))[1])
+
+    centre = d_centre(lambda sc: rtjax.render_samples(sc, xy, edges=WIDTH, parts=True).centre)
+    aware = d_centre(lambda sc: rtjax.render_samples(sc, xy, edges=WIDTH))
+    plain_d = d_centre(lambda sc: rtjax.render_samples(sc, xy))
+    e = rtjax.render_samples(s, xy, edges=WIDTH, parts=True)
+    floor = np.asarray(e.x) == 0  # no silhouette in the pixel: shadow edges only
+    shadow_edge = floor & (np.abs(centre).max(1) > 1) & (np.abs(plain_d).max(1) < 1e-9)
+    assert shadow_edge.sum() > 5
+    np.testing.assert_allclose(centre[floor], aware[floor], rtol=1e-9, atol=1e-9)
+
+
+def test_parts_need_the_silhouette_mode():
+    s = scene("single")
+    with pytest.raises(rtjax.RtjaxError, match="edges"):
+        rtjax.render_samples(s, _pixel_centres(s), parts=True)

@@ -1,12 +1,11 @@
-"""fitting.objective: the exact (polish) level's model is the pixel-centre render in value
-and the silhouette-aware render in derivative."""
+"""fitting.objective: the exact (full-size) level matches a pixel-centre target exactly at
+the truth and pulls moved edges back; the pyramid; nuisance units."""
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 from conftest import scene_from_text
 
 import rtjax
@@ -27,28 +26,54 @@ rend x.sunimg
 """
 
 
-def test_exact_level_values_are_pixel_centres_and_derivatives_the_aware_ones():
-    scene = scene_from_text(DECK).astype(jnp.float64)
-    target = np.zeros((scene.structure.height, scene.structure.width, 3))
-    weight = np.ones(target.shape[:2] + (1,))
+def _levels(scene, target):
     w = scene.structure.width
-    soft, exact = make_levels(target, weight, [w, w], [1.0, 1.0], jnp.float64, exact=[False, True])
+    weight = np.ones(target.shape[:2] + (1,))
+    return make_levels(target, weight, [w, w], [1.0, 1.0], jnp.float64, exact=[False, True])
+
+
+def test_exact_level_matches_a_pixel_centre_target_at_the_truth():
+    """At the truth the exact level's model is the pixel-centre render (residual 0);
+    the box-filtered level differs from it at the outline."""
+    scene = scene_from_text(DECK).astype(jnp.float64)
+    plain = np.asarray(rtjax.render(scene))
+    soft, exact = _levels(scene, plain)
+    assert exact.exact and not soft.exact
     selection = Selection(scene, "centers", None)
-    objective = Objective(selection, None, "l2", 10.0, exact_levels=True)
+    objective = Objective(selection, None, "l2", 10.0)
+    y = {"scene": selection.y0()}
+    order = np.lexsort(np.asarray(exact.xy).T)  # the exact level's samples in image order (rows, then columns)
+    np.testing.assert_allclose(np.asarray(objective.model(y, exact))[order], plain.reshape(-1, 3), rtol=0, atol=1e-9)
+    aware = np.asarray(rtjax.render(scene, edges=1.0)).reshape(-1, 3)
+    np.testing.assert_allclose(np.asarray(objective.model(y, soft)), aware, rtol=0, atol=1e-9)
+    assert np.abs(plain.reshape(-1, 3) - aware).max() > 10
+
+
+def test_exact_level_pulls_a_moved_sphere_back():
+    """Moved by a fraction of a pixel, some pixel centres change side; the exact level's
+    loss is then positive and its gradient points back to the truth, where the
+    pixel-centre render's own gradient has no edge term at all."""
+    truth = scene_from_text(DECK).astype(jnp.float64)
+    target = np.asarray(rtjax.render(truth))
+    _, exact = _levels(truth, target)
+    shift = jnp.array([0.12, 0.0, -0.09])  # world units: ~0.4 pixel at this distance
+    start = truth.replace(centers=truth.params.centers + shift)
+    selection = Selection(start, "centers", None)
+    objective = Objective(selection, None, "l2", 10.0)
     y = {"scene": selection.y0()}
 
-    plain = np.asarray(rtjax.render(scene)).reshape(-1, 3)
-    aware = np.asarray(rtjax.render(scene, edges=1.0)).reshape(-1, 3)
-    np.testing.assert_allclose(np.asarray(objective.model(y, soft)), aware, atol=1e-9)
-    np.testing.assert_allclose(np.asarray(objective.model(y, exact)), plain, atol=1e-9)
-    assert np.abs(plain - aware).max() > 10  # the two differ at the outline
+    def loss(y):
+        return 0.5 * jnp.sum(objective.residuals(y, exact) ** 2)
 
-    def jac(samples):
-        return np.asarray(jax.jacfwd(lambda y: objective.model(y, samples))(y)["scene"]["centers"])
-
-    j_soft, j_exact = jac(soft), jac(exact)
-    np.testing.assert_allclose(j_exact, j_soft, atol=1e-9)
-    assert np.abs(j_soft).max() > 1  # edges move under the derivative
+    assert float(loss(y)) > 1e-3
+    g = np.asarray(jax.grad(loss)(y)["scene"]["centers"]).ravel()
+    back = -np.asarray(shift)
+    cos = g @ -back / (np.linalg.norm(g) * np.linalg.norm(back))  # descent (−g) along `back`
+    assert cos > 0.9, cos
+    # a step down the gradient lowers the loss
+    step = {"scene": jax.tree_util.tree_map(lambda a, b: a - 0.5 * float(loss(y)) / float(np.sum(g * g)) * b, y["scene"],
+                                            jax.grad(loss)(y)["scene"])}
+    assert float(loss(step)) < float(loss(y))
 
 
 def test_apply_nuisance_takes_the_units_fit_reports():
@@ -60,17 +85,21 @@ def test_apply_nuisance_takes_the_units_fit_reports():
     np.testing.assert_allclose(np.asarray(apply_nuisance(image, logs, logs=True))[0, 0], expect, rtol=1e-6)
 
 
-def test_only_an_exact_polish_makes_an_exact_level():
+def test_the_full_size_level_is_exact_by_default_and_takes_every_edge_pixel():
+    from fitting.objective import edge_band
     from fitting.solve import prepare_fit
 
-    scene = scene_from_text(DECK)
-    target = np.zeros((scene.structure.height, scene.structure.width, 3))
-    args = (target, "centers", None, None, None, None, 0.02, "cauchy", 10.0, None, (), None, False)
-    pyramid, objective = prepare_fit(scene, *args)[5:]
-    assert [float(s.exact) for s in pyramid] == [0.0] * len(pyramid)
-    assert not objective.exact_levels  # no pixel-centre render compiled into the step
-    pyramid, objective = prepare_fit(scene, *args, exact_polish=True)[5:]
-    assert objective.exact_levels
-    assert [float(s.exact) for s in pyramid] == [0.0] * (len(pyramid) - 1) + [1.0]
-    assert float(pyramid[-1].width) == pytest.approx(0.02)
-    assert prepare_fit(scene, *args[:6], None, *args[7:], exact_polish=True)[5][-1].exact == 0  # no polish: none exact
+    scene = scene_from_text(DECK, size=48)
+    target = np.asarray(rtjax.render(scene))
+    args = (target, "centers", None, None, [24, 48], None, 1.0, "cauchy", 10.0, None, (), None, False)
+    pyramid = prepare_fit(scene, *args)[5]
+    assert [s.exact for s in pyramid] == [False, True]
+    band = np.flatnonzero(edge_band(target).ravel())
+    w = scene.structure.width
+    xy = np.asarray(pyramid[-1].xy)
+    taken = set((np.floor(xy[:, 1]) * w + np.floor(xy[:, 0])).astype(int))
+    assert set(band) <= taken and len(taken) == len(xy)
+    # --no-exact-polish: a last box-filtered level after the full-size one; no polish: neither
+    pyramid = prepare_fit(scene, *args, exact_polish=False)[5]
+    assert [s.exact for s in pyramid] == [False] * 3 and float(pyramid[-1].width) == 1.0
+    assert [s.exact for s in prepare_fit(scene, *args[:6], None, *args[7:])[5]] == [False, False]
