@@ -398,7 +398,7 @@ def plot_histories(results, labels, title):
         if r is h[0] or r["width"] != h[h.index(r) - 1]["width"]:
             ax.annotate(f"{r['width']} px", (r["step"], 1.0), xycoords=("data", "axes fraction"), fontsize=7,
                         va="bottom", ha="left")
-    ax.set_xlabel("iteration (levels: 1/4, 1/2, full size, polish; widths on top)")
+    ax.set_xlabel("iteration (levels: 1/4, 1/2, full size; widths on top)")
     ax.set_ylabel("loss")
     ax.set_title(title, fontsize=10, pad=12)
     ax.grid(True, which="both", alpha=0.3)
@@ -466,9 +466,10 @@ show([img_start, img_fit, target, difference(img_start, target), difference(img_
         md("""
         Each pyramid level measures its own image (dotted lines where the width
         changes: quarter size, half size, full size), so the loss jumps where a level
-        starts. The last level is a polish at full size with nearly pixel-centre edges
-        (same width, no marker): the steep drop late in the run is where its sharp edges
-        meet the target's. The difference images (white = no difference) show the start's
+        starts. The full-size level is matched at pixel centres, as the target was
+        rendered: an edge pixel counts exactly when its centre lies on the target's side
+        of the edge, so the fit is unbiased there; the steep drop at its start is where
+        its sharp edges meet the target's. The difference images (white = no difference) show the start's
         misplaced silhouettes and shadows, and what is left after the fit; the table
         gives each ball's remaining error in deck units.
 
@@ -499,7 +500,7 @@ show([img_start2, img_fit2, target, difference(img_fit2, target)],
 '''),
         md("""
         Colours enter the image almost linearly: the loss falls steadily on the coarse
-        level, and the polish brings it to the level of the centres' remaining error
+        level, and the full-size level brings it to the level of the centres' remaining error
         (the table compares each fitted number with the truth).
 
         ## 3. A photo-like target
