@@ -96,13 +96,12 @@ def prepare_fit(scene, target, free, spheres, depth, levels, edges, polish, loss
     # one value: every level; several: one per level in order, the last repeating
     per_level = [given[min(i, len(given) - 1)] for i in range(len(widths))]
     exact = [False] * len(widths)
-    polish = [float(w) for w in np.ravel(polish)] if polish else []
     if polish and exact_polish and len(widths) > 1:
         # matched at pixel centres, the full-size level needs no box-filtered one before it
         # (measured: the one it replaces reduced the loss by ~2 % in its 4-5 steps)
-        per_level[-1], exact[-1] = polish[0], True
-        polish = polish[1:]
-    widths, per_level, exact = widths + [widths[-1]] * len(polish), per_level + polish, exact + [bool(exact_polish)] * len(polish)
+        per_level[-1], exact[-1] = float(polish), True
+    elif polish:
+        widths, per_level, exact = widths + [widths[-1]], per_level + [float(polish)], exact + [bool(exact_polish)]
     pyramid = make_levels(target, prepare_mask(mask, *target.shape[:2]), widths, per_level, dtype, exact=exact)
     objective = Objective(selection, depth, loss, loss_scale)
     return full, selection, y, jac, widths, pyramid, objective
@@ -158,11 +157,6 @@ def fit(
       targets that are themselves antialiased. Measured on the sample deck, ±3 units,
       three starts: largest centre error 0.0076, 0.062, 0.0056 units (exact) against
       0.047, 0.125, 0.055 (0.02-pixel box polish); see README "How well it works".
-      A sequence: further full-size levels of those widths after the first (with
-      `exact_polish`, a narrower hinge enforces edge sides more strongly; the first
-      runs until it stalls, leaving each later one 3 iterations). Measured with
-      (1, 0.1): 0.0035 and 0.0060 on two of the starts above, but 0.39 on the third,
-      whose first exact level had not converged within 30 iterations; not the default.
     loss: 'cauchy' (default, robust), 'huber', or 'l2'; `loss_scale` in levels.
     nuisance: fitted jointly with the scene for photo-like targets: 'gain' and 'gamma'
       (model = 255·(gain·I/255)^γ) and 'blur' (a Gaussian σ in pixels, as a wider box
@@ -189,16 +183,9 @@ def fit(
     for level, (width, samples) in enumerate(zip(widths, pyramid)):
         final = level == len(widths) - 1
         # the coarsest level does most of the travelling: half of the steps; later levels
-        # share what is left equally (one that stalls early hands its remainder on); an
-        # exact level followed by narrower ones runs until it stalls, leaving them 3 each
+        # share what is left equally (one that stalls early hands its remainder on)
         share = 2 if level == 0 else len(widths) - level
-        later = len(widths) - 1 - level
-        if final:
-            budget = max_steps - steps
-        elif samples.exact:
-            budget = max(1, max_steps - steps - 3 * later)
-        else:
-            budget = max(1, (max_steps - steps) // share)
+        budget = max_steps - steps if final else max(1, (max_steps - steps) // share)
         best, result, n = run.level(best[0], samples, budget, not final, history, steps, width, callback, t_start)
         steps += n
     fitted = selection.scene_at(best[0]["scene"])

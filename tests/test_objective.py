@@ -103,7 +103,3 @@ def test_the_full_size_level_is_exact_by_default_and_takes_every_edge_pixel():
     pyramid = prepare_fit(scene, *args, exact_polish=False)[5]
     assert [s.exact for s in pyramid] == [False] * 3 and float(pyramid[-1].width) == 1.0
     assert [s.exact for s in prepare_fit(scene, *args[:6], None, *args[7:])[5]] == [False, False]
-    # several widths: narrower exact levels after the first
-    pyramid = prepare_fit(scene, *args[:6], [1.0, 0.1], *args[7:])[5]
-    assert [s.exact for s in pyramid] == [False, True, True]
-    np.testing.assert_allclose([float(s.width) for s in pyramid], [1.0, 1.0, 0.1], rtol=1e-6)
