@@ -102,7 +102,10 @@ def prepare_fit(scene, target, free, spheres, depth, levels, edges, polish, loss
         per_level[-1], exact[-1] = float(polish), True
     elif polish:
         widths, per_level, exact = widths + [widths[-1]], per_level + [float(polish)], exact + [bool(exact_polish)]
-    pyramid = make_levels(target, prepare_mask(mask, *target.shape[:2]), widths, per_level, dtype, exact=exact)
+    # a blurred (photo-like) target: the full-size level renders three points per sample
+    # (`Objective.model`) and its edges decide less, so it keeps the common sample count
+    pyramid = make_levels(target, prepare_mask(mask, *target.shape[:2]), widths, per_level, dtype, exact=exact,
+                          exact_samples=4 if "blur" in (nuisance or ()) else 6)
     objective = Objective(selection, depth, loss, loss_scale)
     return full, selection, y, jac, widths, pyramid, objective
 

@@ -103,3 +103,31 @@ def test_the_full_size_level_is_exact_by_default_and_takes_every_edge_pixel():
     pyramid = prepare_fit(scene, *args, exact_polish=False)[5]
     assert [s.exact for s in pyramid] == [False] * 3 and float(pyramid[-1].width) == 1.0
     assert [s.exact for s in prepare_fit(scene, *args[:6], None, *args[7:])[5]] == [False, False]
+
+
+def test_a_fitted_blur_is_three_renders_at_full_size_and_wider_edges_below():
+    """Full size: the mean of renders at three points σ√2 from each sample, 120° apart
+    (covariance σ²·I, the photo's Gaussian); coarse levels: the edges' box widened to
+    the same variance."""
+    scene = scene_from_text(DECK).astype(jnp.float64)
+    target = np.asarray(rtjax.render(scene))
+    w = scene.structure.width
+    weight = np.ones(target.shape[:2] + (1,))
+    coarse, full = make_levels(target, weight, [w // 2, w], [1.0, 1.0], jnp.float64, exact=[False, True])
+    selection = Selection(scene, "centers", None)
+    objective = Objective(selection, None, "l2", 10.0)
+    sigma = 0.7
+    y = {"scene": selection.y0(), "nuisance": {"blur": jnp.log(sigma)}}
+    angle = np.arange(3) * 2 * np.pi / 3
+    offsets = np.sqrt(2) * sigma * np.stack([np.cos(angle), np.sin(angle)], -1)
+    np.testing.assert_allclose(offsets.mean(0), 0, atol=1e-12)
+    np.testing.assert_allclose(offsets.T @ offsets / 3, sigma**2 * np.eye(2), atol=1e-12)
+    xy = np.asarray(full.xy)
+    expect = np.mean([np.asarray(rtjax.render_samples(scene, xy + o, edges=1.0)) for o in offsets], axis=0)
+    np.testing.assert_allclose(np.asarray(objective.model(y, full)), expect, rtol=0, atol=1e-9)
+    step = float(coarse.step)
+    wide = np.sqrt(1 + 12 * (sigma / step) ** 2)
+    expect = np.asarray(rtjax.render_samples(scene, np.asarray(coarse.xy), step=step, edges=wide))
+    np.testing.assert_allclose(np.asarray(objective.model(y, coarse)), expect, rtol=0, atol=1e-9)
+    g = jax.grad(lambda b: jnp.sum(objective.model({"scene": y["scene"], "nuisance": {"blur": b}}, full)))(jnp.log(sigma))
+    assert np.isfinite(float(g)) and abs(float(g)) > 0
