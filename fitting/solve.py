@@ -162,8 +162,9 @@ def fit(
       0.047, 0.125, 0.055 (0.02-pixel box polish); see README "How well it works".
     loss: 'cauchy' (default, robust), 'huber', or 'l2'; `loss_scale` in levels.
     nuisance: fitted jointly with the scene for photo-like targets: 'gain' and 'gamma'
-      (model = 255·(gain·I/255)^γ) and 'blur' (a Gaussian σ in pixels, as a wider box
-      filter at edges).
+      (model = 255·(gain·I/255)^γ) and 'blur' (a Gaussian σ in pixels: a wider box
+      filter at edges on coarse levels, the mean of three renders around each sample
+      at full size, see `Objective.model`).
     jac: 'fwd' (default: the Jacobian by forward mode, one batched pass per step) or
       'bwd' (reverse mode, for many free parameters such as texels).
     callback: called after every iteration with that iteration's history row.
