@@ -31,11 +31,12 @@ def moved(scene: rtjax.Scene, **deltas) -> rtjax.Scene:
 
 def test_recovers_centres(truth, target):
     """Off by up to 1.5 units (a fifth of a radius) in every direction. Depth (along the
-    view, y here) is seen only through perspective, so it is the least determined."""
+    view, y here) is seen only through perspective, so it is the least determined.
+    (Measured 2026-11-28: across 0.0027, depth 0.0075 units, 64 pixels wide.)"""
     start = moved(truth, centers=np.array([[1.5, -1.0, 1.2], [-1.3, 1.0, -1.4]]))
     res = fitting.fit(start, target, "centers", max_steps=25)
     err = np.abs(np.asarray(res.scene.params.centers) - np.asarray(truth.params.centers))
-    assert err[:, [0, 2]].max() < 0.05 and err[:, 1].max() < 0.15, res.table()
+    assert err[:, [0, 2]].max() < 0.01 and err[:, 1].max() < 0.02, res.table()
     assert res.history and res.history[-1]["best_loss"] < res.history[0]["loss"]
 
 
