@@ -76,13 +76,19 @@ def resolve_options(scene: Scene, depth, spp, dtype, edges, tile) -> tuple[int, 
     if int(spp) < 1:
         raise RtjaxError(f"spp must be ≥ 1, not {spp}")
     dtype = resolve_dtype(scene, dtype)
-    tile = default_tile() if tile is None else int(tile)
-    if tile < 1:
-        raise RtjaxError(f"tile must be ≥ 1, not {tile}")
+    tile = resolve_tile(tile)
     edges = float(edges)
     if not (0 <= edges <= 16):
         raise RtjaxError(f"edges (an edge width in pixels) must be in [0, 16], not {edges}")
     return resolve_depth(scene.structure, depth), int(spp), dtype, edges, tile
+
+
+def resolve_tile(tile: int | None) -> int:
+    """Rays traced together: `default_tile()` for None, else a whole number ≥ 1."""
+    tile = default_tile() if tile is None else int(tile)
+    if tile < 1:
+        raise RtjaxError(f"tile must be ≥ 1, not {tile}")
+    return tile
 
 
 def default_tile() -> int:
@@ -171,7 +177,7 @@ def render_samples(
     blend's parts (fitting uses them to match a target sampled at pixel centres).
     """
     dtype = resolve_dtype(scene, dtype)
-    tile = default_tile() if tile is None else int(tile)
+    tile = resolve_tile(tile)
     xy = jnp.asarray(xy, dtype)
     if xy.ndim != 2 or xy.shape[1] != 2:
         raise RtjaxError(f"xy must have shape (K, 2), not {xy.shape}")

@@ -292,11 +292,10 @@ def trace_edges(s: Structure, p: Params, o, d, diff: "edges.Differentials", dept
     twice = edges.Differentials(*(two(a) for a in b.diff))
     out, _ = _chain(s, p, m, start, depth, twice, width, (two(none, side.edge), two(side.edge, none)), sharp=parts)
     inside, outside = jnp.split(jnp.clip(out.colour, 0, 255), 2, axis=-1)
-    mixed = side.alpha * inside + (1 - side.alpha) * outside
     # padding slots (index 0 repeated) write nowhere: pixel 0 may itself be an edge pixel
     to = jnp.where(valid, sel, n)
     if not parts:
-        return plain.at[:, to].set(mixed, mode="drop")
+        return plain.at[:, to].set(side.alpha * inside + (1 - side.alpha) * outside, mode="drop")
     rows = jnp.concatenate([plain, plain, plain, jnp.zeros_like(plain[:1])])
     return rows.at[3:, to].set(jnp.concatenate([inside, outside, side.x[None]]), mode="drop")
 

@@ -35,6 +35,7 @@ import pytest
 
 import reference
 import rtjax
+from rtjax.camera import pixel_grid
 
 SPP = 32  # the yardstick: 32 × 32 samples per pixel
 STEP = 0.2  # finite-difference step, in pixels (world size at the sphere's distance)
@@ -318,8 +319,8 @@ def test_silhouette_seen_through_glass(axis):
 
 
 def _pixel_centres(s: rtjax.Scene):
-    j, i = np.mgrid[0 : s.structure.height, 0 : s.structure.width]
-    return np.stack([i.ravel() + 0.5, j.ravel() + 0.5], -1)
+    """(H·W, 2) pixel centres, row-major as `render` lays pixels out."""
+    return np.asarray(pixel_grid(s.structure.width, s.structure.height, jnp.array([0.5, 0.5]))).T
 
 
 @pytest.mark.parametrize("name", ["occlusion", "shadow"])
