@@ -225,11 +225,13 @@ class Objective:
 
         A box-filtered edge pixel differs from such a target even at the truth: there
         the target holds the colour of whichever side the pixel's centre lies on. The
-        sided form takes the side the target shows (its colour nearer the render's
-        `inside` or `outside` colour) and blends with α = clip(x + 1, 0, 1) for the
-        edge sphere's side or clip(x, 0, 1) for the other (x: the centre's signed
-        distance to the edge in box widths): the colour of the target's side while the
-        centre lies there, a linear penalty within one box width beyond.
+        sided form gives the colour at the pixel's centre where the target is nearer it
+        than the colour traced on the edge's other side (exact at the truth, thin
+        features and two-edge pixels included), and where the target shows the other
+        side, centre + (1 − |x|)·(other − centre) (x: the centre's signed distance to
+        the edge in box widths): a penalty linear in how far the centre lies on the
+        wrong side, within one box width, whose derivative moves the edge across it.
+        Shadow edges alike: `flipped` is the centre's colour across its nearest one.
 
         With a fitted blur (a photo-like target: no sharp edges to match, every level is
         silhouette-aware) each sample of the full-size level is the mean of renders at
@@ -259,12 +261,18 @@ class Objective:
         if not samples.exact:
             return apply_nuisance(render(samples.xy), nuisance, logs=True)
         e = render(samples.xy, parts=True)
-        centre, inside, outside = (apply_nuisance(c, nuisance, logs=True) for c in (e.centre, e.inside, e.outside))
-        sg = jax.lax.stop_gradient
-        shows_inside = jnp.sum((samples.target - sg(inside)) ** 2, -1) < jnp.sum((samples.target - sg(outside)) ** 2, -1)
-        alpha = jnp.clip(e.x + shows_inside, 0, 1)[:, None]
-        on_inside = (e.x > 0)[:, None]  # the centre's own side: its exact colour is the centre's
-        return alpha * jnp.where(on_inside, centre, inside) + (1 - alpha) * jnp.where(on_inside, outside, centre)
+        centre, inside, outside, flipped = (apply_nuisance(c, nuisance, logs=True)
+                                            for c in (e.centre, e.inside, e.outside, e.flipped))
+        across = jnp.where((e.x > 0)[:, None], outside, inside)  # the silhouette's side the centre is not on
+        # the side the target shows: the centre's, across the silhouette, or across the
+        # shadow edge (whichever colour is nearest the target's)
+        miss = [jnp.sum((samples.target - jax.lax.stop_gradient(c)) ** 2, -1) for c in (centre, across, flipped)]
+        shows = jnp.argmin(jnp.stack(miss), axis=0)
+
+        def towards(side, x):  # the share of the other side: 1 − |x| where the target shows it
+            return jnp.where(shows == side, jnp.clip(1 - jnp.abs(x), 0, 1), 0)[:, None]
+
+        return centre + towards(1, e.x) * (across - centre) + towards(2, e.shadow_x) * (flipped - centre)
 
     def residuals(self, y: dict, samples: Samples):
         r = (self.model(y, samples) - samples.target) * samples.weight / 255

@@ -169,7 +169,25 @@ def _nearest(score):
     return jnp.where(jnp.isfinite(best), idx, -1).astype(jnp.int32)
 
 
-def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, dpx, dpy, width: float, sharp: bool = False):
+class Flip(NamedTuple):
+    """Per pixel, its nearest shadow edge over the chain (sided mode, `soft_shadow`):
+    how the colour changes if the pixel's centre lay on the edge's other side, and the
+    centre's distance to the edge in box widths (inf: none within reach)."""
+
+    x: Float[Array, " p"]
+    delta: Float[Array, "3 p"]
+
+    @staticmethod
+    def none(like) -> "Flip":
+        p = like.shape[-1]
+        return Flip(jnp.full(p, jnp.inf, like.dtype), jnp.zeros((3, p), like.dtype))
+
+    def nearer(self, other: "Flip") -> "Flip":
+        """Per pixel, whichever of the two edges is nearer."""
+        return jax.tree_util.tree_map(lambda a, b: jnp.where(self.x < other.x, a, b), self, other)
+
+
+def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, dpx, dpy, width: float, sided: bool = False):
     """Visibility of one light at each hit, its nearest shadow edge box-filtered.
 
     The hard visibility of every other occluder times the soft factor 1 − (1 − τ)·α of
@@ -177,8 +195,11 @@ def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, dpx, dpy,
     footprint on the surface inside that occluder's shadow cylinder). The hit's own
     sphere stays hard: its terminator is already continuous in max(N·L, 0).
 
-    `sharp`: the value at the pixel's centre (the edge's hard factor) with the
-    box-filtered factor's derivative, what a target sampled at pixel centres shows.
+    `sided`: instead (visibility, flipped visibility, x): the value at the pixel's
+    centre (the edge's hard factor, no edge derivative), the value had the centre lain
+    on the edge's other side, and the centre's distance to the edge in box widths
+    (differentiable; inf where no edge is within reach) — what a target sampled at pixel
+    centres needs (see `rtjax.render_samples(parts=True)`).
     """
     n = centers.shape[0]
     ray = jnp.broadcast_to(light[:, None], hit.point.shape)
@@ -194,9 +215,13 @@ def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, dpx, dpy,
     delta_e, nx, ny, _, _ = edge_terms(hit.point, ray, dpx, still, dpy, still, c, r)
     # |δ| ≥ width (a candidate only by the bound): α is 0 or 1, the hard factor exactly
     blocked = 1 - factor[jnp.maximum(edge, 0)]
+    if sided:
+        inside = sg(delta_e) < 0
+        reached = (edge >= 0) & (jnp.abs(sg(delta_e)) < width)
+        here = jnp.where(edge >= 0, 1 - blocked * inside, 1)
+        there = jnp.where(reached, 1 - blocked * ~inside, here)
+        return hard * here, hard * there, jnp.where(reached, jnp.abs(delta_e) / width, jnp.inf)
     soft = 1 - blocked * coverage(-delta_e / width, nx, ny)
-    if sharp:
-        soft = jax.lax.stop_gradient(1 - blocked * (delta_e < 0) - soft) + soft
     return hard * jnp.where(edge >= 0, soft, 1)
 
 
@@ -263,13 +288,23 @@ class Sides(NamedTuple):
     d_out: Float[Array, "3 p"]
 
 
-def both_sides(best: Best, centers, radii, width: float) -> Sides:
+#: `both_sides(at_edge=True)`: how far past the edge, in box widths, each side is traced.
+ACROSS = 0.05
+
+
+def both_sides(best: Best, centers, radii, width: float, at_edge: bool = False) -> Sides:
     """Coverage α (differentiable in the scene) and the rays through the centroids of
-    the inside and outside parts of the pixel's box, offset along the ray differentials."""
+    the inside and outside parts of the pixel's box, offset along the ray differentials.
+
+    `at_edge`: instead, the rays just inside and just outside the edge (`ACROSS` box
+    widths from it) where it passes nearest to the pixel's centre: the colours a
+    pixel-centre sample takes when the edge moves across it."""
     r0, df = best.rays, best.diff
     c, r = _chosen_or_regular(best.edge, r0.o, r0.d, centers, radii)
     delta, nx, ny, _, _ = edge_terms(r0.o, r0.d, *df, c, r)
     alpha, z_in, z_out = split_box(-delta / width, nx, ny)
+    if at_edge:  # the edge lies at z = −x = δ/width along the inward normal
+        z_in, z_out = delta / width + ACROSS, delta / width - ACROSS
 
     def ray(z):  # z along the inward normal −(nx, ny), in box sides
         sx, sy = -z * width * nx, -z * width * ny

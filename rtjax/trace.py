@@ -61,28 +61,36 @@ def surface_colour(s: Structure, p: Params, m: Material, idx, normal_out) -> Flo
     return d
 
 
-def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, soft=None) -> Float[Array, "3 p"]:
+def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, soft=None):
     """Local light at each hit: Σ over lights of ambient, diffuse and specular with shadows.
 
-    `soft` = (∂P/∂x, ∂P/∂y, width, sharp): box-filter the nearest shadow edge
-    (silhouette mode; `sharp`: its value at the centre, see `edges.soft_shadow`).
+    `soft` = (∂P/∂x, ∂P/∂y, width, sided): box-filter the nearest shadow edge
+    (silhouette mode). `sided`: shadows sharp at the centre, and also the nearest
+    shadow edge over the lights as an `edges.Flip` (see `edges.soft_shadow`); then
+    (colour, flip) is returned.
     """
     total = jnp.zeros_like(n)
+    sided = soft is not None and soft[-1]
+    flip = edges.Flip.none(n[0]) if sided else None
     if s.n_lights == 0:
-        return total
+        return (total, flip) if sided else total
     idx = jnp.maximum(hit.index, 0)
     d = surface_colour(s, p, m, idx, hit.normal_out)
     ks, beta = m.ks[idx], m.beta[idx]
     for i, (light, colour) in enumerate(zip(m.lights, p.light_colors)):
+        nl, cos_g = phong_angles(n, v, light)
         if soft is None:
             ray = jnp.broadcast_to(light[:, None], n.shape)
             vis = spheres.transmission(hit.point, ray, p.centers, p.radii, hit.index, m.tmin, m.shadow_factor,
                                        active=hit.live, grid=m.grids[i] if m.grids else None)
+        elif sided:
+            vis, there, x = edges.soft_shadow(hit, light, p.centers, p.radii, m.tmin, m.shadow_factor, *soft)
+            change = local_light(d, ks, beta, p.ke, nl, cos_g, there, colour) - local_light(d, ks, beta, p.ke, nl, cos_g, vis, colour)
+            flip = flip.nearer(edges.Flip(x, change))
         else:
             vis = edges.soft_shadow(hit, light, p.centers, p.radii, m.tmin, m.shadow_factor, *soft)
-        nl, cos_g = phong_angles(n, v, light)
         total = total + local_light(d, ks, beta, p.ke, nl, cos_g, vis, colour)
-    return total
+    return (total, flip) if sided else total
 
 
 def next_direction(s: Structure, p: Params, idx, d, n, entering):
@@ -108,11 +116,13 @@ class Rays(NamedTuple):
     weight: Float[Array, " p"]  # product of kt so far; 0 once the chain has ended
     colour: Float[Array, "3 p"]
     level: Int[Array, " p"]  # this segment's index in the chain (0: primary)
+    flip: "edges.Flip | None" = None  # the nearest shadow edge so far (sided mode only)
 
 
-def start_rays(o, d) -> Rays:
+def start_rays(o, d, sided: bool = False) -> Rays:
     p = o.shape[1:]
-    return Rays(o, d, jnp.full(p, -1, jnp.int32), jnp.ones(p, o.dtype), jnp.zeros_like(o), jnp.zeros(p, jnp.int32))
+    flip = edges.Flip.none(o[0]) if sided else None
+    return Rays(o, d, jnp.full(p, -1, jnp.int32), jnp.ones(p, o.dtype), jnp.zeros_like(o), jnp.zeros(p, jnp.int32), flip)
 
 
 def segment(
@@ -124,13 +134,15 @@ def segment(
     toggles=None,
     diff: "edges.Differentials | None" = None,
     width: float = 0.0,
-    sharp: bool = False,
+    sided: bool = False,
 ):
     """One segment of the chain for every ray: hit, local light, the next ray.
 
     With `diff` (the rays' change per sample step) the nearest shadow edge of each hit
     is box-filtered over `width` steps and the differentials follow the rays; `toggles`
-    (exclude, force) alter this segment's hit (silhouette mode, `spheres.Hit`).
+    (exclude, force) alter this segment's hit (silhouette mode, `spheres.Hit`);
+    `sided`: shadows sharp at the centre instead, and the rays' `flip` (where they
+    carry one) keeps the nearest shadow edge (`edges.soft_shadow`).
     Returns the next rays, their differentials (or None) and this segment's hit.
     """
     o, d = rays.o, rays.d
@@ -138,11 +150,17 @@ def segment(
     entering = hit.entering
     n = jnp.where(entering, hit.normal_out, -hit.normal_out)
     moves = None if diff is None else edges.hit_motion(hit, o, d, diff)
-    soft = None if moves is None else (moves[0], moves[1], width, sharp)
+    soft = None if moves is None else (moves[0], moves[1], width, sided)
     local = shade_hit(s, p, m, hit, n, -d, soft)
+    flip = rays.flip
+    if soft is not None and sided:
+        local, here = local
+        if flip is not None:  # weighted like the colour it would change
+            flip = flip.nearer(here._replace(x=jnp.where(hit.found & (rays.weight > 0), here.x, jnp.inf),
+                                             delta=rays.weight * here.delta))
     colour = rays.colour + rays.weight * jnp.where(hit.found, local, p.background[:, None])
     if not s.needs_secondary_rays:
-        return rays._replace(weight=jnp.zeros_like(rays.weight), colour=colour), None, hit
+        return rays._replace(weight=jnp.zeros_like(rays.weight), colour=colour, flip=flip), None, hit
     idx = jnp.maximum(hit.index, 0)
     alive = hit.found & jnp.asarray(s.mask(MIRROR, GLASS))[idx] & (rays.level < depth)
     glass = jnp.asarray(s.mask(GLASS))[idx]
@@ -162,7 +180,7 @@ def segment(
         sign = jnp.where(entering, 1, -1).astype(o.dtype) / sg(p.radii)[idx]
         outs = [jax.jvp(turn, (sg(d), sg(n)), (dd, sign * dp))[1] for dd, dp in ((diff.dx, moves[0]), (diff.dy, moves[1]))]
         new_diff = edges.Differentials(*sg((moves[0], outs[0], moves[1], outs[1])))
-    nxt = Rays(hit.point, new_d, hit.index, weight, colour, rays.level + 1)
+    nxt = Rays(hit.point, new_d, hit.index, weight, colour, rays.level + 1, flip)
     return nxt, new_diff, hit
 
 
@@ -185,7 +203,7 @@ def _gather(tree, sel):
     return jax.tree_util.tree_map(lambda a: a[..., sel], tree)
 
 
-def _chain(s, p, m, rays, depth, diff=None, width=0.0, toggles=None, watch=None, sharp=False):
+def _chain(s, p, m, rays, depth, diff=None, width=0.0, toggles=None, watch=None, sided=False):
     """Segments until `rays.level` passes `depth`: one `lax.scan` body (compiled once,
     whatever the depth), each segment skipped at run time by a `lax.cond` once no ray is
     alive (both modes of differentiation go through `lax.cond`). `toggles` alter the
@@ -200,7 +218,7 @@ def _chain(s, p, m, rays, depth, diff=None, width=0.0, toggles=None, watch=None,
 
     `watch(rays, diff, hit, best)` → best is folded over the segments (silhouette mode)."""
     if not s.needs_secondary_rays:
-        rays2, _, hit = segment(s, p, m, rays, depth, toggles, diff, width, sharp)
+        rays2, _, hit = segment(s, p, m, rays, depth, toggles, diff, width, sided)
         return rays2, None if watch is None else watch(rays, diff, hit, watch.empty(rays, diff))
     if toggles is None:
         toggles = (jnp.full(rays.weight.shape, -1, jnp.int32),) * 2
@@ -210,7 +228,7 @@ def _chain(s, p, m, rays, depth, diff=None, width=0.0, toggles=None, watch=None,
     def body(carry, _, nxt):
         def run(c):
             r, df, tg, b = c
-            r2, df2, h = segment(s, p, m, r, depth, tg, df, width, sharp)
+            r2, df2, h = segment(s, p, m, r, depth, tg, df, width, sided)
             off = jnp.full_like(tg[0], -1)
             return r2, df2, (off, off), (b if watch is None else watch(r, df, h, b))
 
@@ -264,15 +282,17 @@ def trace_edges(s: Structure, p: Params, o, d, diff: "edges.Differentials", dept
     the other), and blends them by the box-filtered coverage (see `rtjax.edges`): its
     cost follows the edges' length, not the image's area.
 
-    `parts`: instead, (10, P): the colour at the pixel's centre, its shadow edges sharp
-    with their box-filtered derivative (`edges.soft_shadow`); the colours traced on the
-    edge sphere's side and on the other (both the centre's colour where a pixel has no
-    edge); and the centre's signed distance to the edge in box widths, positive on the
-    sphere's side (0 where none).
+    `parts`: instead, (14, P): the colour at the pixel's centre (shadows sharp); the
+    colours traced just inside and just outside the silhouette where it passes nearest
+    to the centre (both the centre's colour where a pixel has none); the centre's
+    signed distance to it in box widths, positive on the sphere's side (0 where none);
+    the centre's colour had it lain on the other side of its nearest shadow edge over
+    the chain (the centre's colour where none), and its distance to that edge in box
+    widths (inf where none).
     """
     m = prepare(s, p)
     watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width)
-    rays, best = _chain(s, p, m, start_rays(o, d), depth, diff, width, watch=watch, sharp=parts)
+    rays, best = _chain(s, p, m, start_rays(o, d, sided=parts), depth, diff, width, watch=watch, sided=parts)
     plain = jnp.clip(rays.colour, 0, 255)
     n = o.shape[1]
     cap = edge_capacity(n)
@@ -280,7 +300,7 @@ def trace_edges(s: Structure, p: Params, o, d, diff: "edges.Differentials", dept
     (sel,) = jnp.nonzero(has, size=cap, fill_value=0)
     valid = jnp.arange(cap) < jnp.sum(has)
     b = jax.tree_util.tree_map(lambda a: a[..., sel], best)
-    side = edges.both_sides(b, p.centers, p.radii, width)
+    side = edges.both_sides(b, p.centers, p.radii, width, at_edge=parts)
     r0 = b.rays
 
     def two(a, b=None):
@@ -290,14 +310,15 @@ def trace_edges(s: Structure, p: Params, o, d, diff: "edges.Differentials", dept
                  two(jnp.where(valid, r0.weight, 0)), two(r0.colour), two(r0.level))
     none = jnp.full((cap,), -1, jnp.int32)
     twice = edges.Differentials(*(two(a) for a in b.diff))
-    out, _ = _chain(s, p, m, start, depth, twice, width, (two(none, side.edge), two(side.edge, none)), sharp=parts)
+    out, _ = _chain(s, p, m, start, depth, twice, width, (two(none, side.edge), two(side.edge, none)), sided=parts)
     inside, outside = jnp.split(jnp.clip(out.colour, 0, 255), 2, axis=-1)
     # padding slots (index 0 repeated) write nowhere: pixel 0 may itself be an edge pixel
     to = jnp.where(valid, sel, n)
     if not parts:
         return plain.at[:, to].set(side.alpha * inside + (1 - side.alpha) * outside, mode="drop")
     rows = jnp.concatenate([plain, plain, plain, jnp.zeros_like(plain[:1])])
-    return rows.at[3:, to].set(jnp.concatenate([inside, outside, side.x[None]]), mode="drop")
+    rows = rows.at[3:, to].set(jnp.concatenate([inside, outside, side.x[None]]), mode="drop")
+    return jnp.concatenate([rows, jnp.clip(rays.colour + rays.flip.delta, 0, 255), rays.flip.x[None]])
 
 
 def tiled(fn, tile: int, *arrays):

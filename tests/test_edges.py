@@ -351,24 +351,40 @@ def test_parts_centre_is_the_plain_colour_and_sides_straddle_it(name):
     assert np.all(np.abs(own - flat).max(1)[sharp] < np.abs(other - flat).max(1)[sharp])
 
 
-def test_parts_centre_carries_the_shadow_edges_derivative():
-    """Sharp in value, the shadow edge's motion is in the centre colour's derivative: the
-    same as the box-filtered render's on the floor, where the plain render has none."""
+def test_parts_flip_the_nearest_shadow_edge():
+    """On the floor (no silhouette), `flipped` is the centre's colour across its nearest
+    shadow edge: the floor's ambient colour ke·d·L where the centre is lit, and the lit
+    colour (the floor rendered without the occluder) where it is in shadow; every floor
+    pixel whose centre changes side when the shadow moves by a fraction of a pixel had
+    that edge within reach, and its distance to it is what the move needed."""
     s = scene("shadow")
     xy = _pixel_centres(s)
-
-    def d_centre(fn):
-        t = jnp.zeros_like(s.params.centers).at[0, 0].set(1.0)  # the occluder along x
-        return np.asarray(jax.jvp(lambda c: fn(s.replace(centers=c)), (s.params.centers,), (t,))[1])
-
-    centre = d_centre(lambda sc: rtjax.render_samples(sc, xy, edges=WIDTH, parts=True).centre)
-    aware = d_centre(lambda sc: rtjax.render_samples(sc, xy, edges=WIDTH))
-    plain_d = d_centre(lambda sc: rtjax.render_samples(sc, xy))
     e = rtjax.render_samples(s, xy, edges=WIDTH, parts=True)
-    floor = np.asarray(e.x) == 0  # no silhouette in the pixel: shadow edges only
-    shadow_edge = floor & (np.abs(centre).max(1) > 1) & (np.abs(plain_d).max(1) < 1e-9)
-    assert shadow_edge.sum() > 5
-    np.testing.assert_allclose(centre[floor], aware[floor], rtol=1e-9, atol=1e-9)
+    centre, flipped, sx = np.asarray(e.centre), np.asarray(e.flipped), np.asarray(e.shadow_x)
+    # every floor pixel's centre: its sphere, from the plain hit test
+    o, d = rtjax.camera.rays_through(s.params.eye, s.params.refp, s.params.vang, 32, 32, jnp.asarray(xy.T))
+    on_floor = np.asarray(rtjax.spheres.nearest(o, d, s.params.centers, s.params.radii, jnp.full(1024, -1), 1e-6)[1]) == 1
+    floor = on_floor & (np.asarray(e.x) == 0)
+    near = floor & (sx < 1)
+    lit = near & (centre.sum(1) > flipped.sum(1) + 30)
+    dark = near & (flipped.sum(1) > centre.sum(1) + 30)
+    assert lit.sum() > 5 and dark.sum() > 5
+    ambient = 0.15 * np.array([0.8, 0.8, 0.7]) * np.array([170, 160, 150])
+    np.testing.assert_allclose(flipped[lit], np.broadcast_to(ambient, flipped[lit].shape), atol=1e-9)
+    away = s.replace(centers=s.params.centers.at[0, 0].add(1e3))  # the occluder far out of view: no shadow
+    no_shadow = np.asarray(rtjax.render_samples(away, xy))
+    np.testing.assert_allclose(flipped[dark], no_shadow[dark], atol=1e-9)
+    np.testing.assert_allclose(flipped[sx == np.inf], centre[sx == np.inf], atol=1e-9)  # no edge within reach
+    assert np.all((sx >= 0) & ((sx < 1) | (sx == np.inf)))
+    # move the occluder by 0.9 of a pixel's size, along x and along y: the floor pixels
+    # whose centres change side had that edge within reach, and take the flipped colour
+    for axis in (0, 1):
+        moved = s.replace(centers=s.params.centers.at[0, axis].add(0.9 * pixel_size(s, 0)))
+        after = np.asarray(rtjax.render_samples(moved, xy))
+        changed = floor & (np.abs(after - centre).max(1) > 30)
+        assert changed.sum() >= 5
+        assert np.all(sx[changed] < 1)
+        np.testing.assert_allclose(flipped[changed], after[changed], atol=1e-9)
 
 
 def test_parts_need_the_silhouette_mode():

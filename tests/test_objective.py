@@ -76,6 +76,59 @@ def test_exact_level_pulls_a_moved_sphere_back():
     assert float(loss(step)) < float(loss(y))
 
 
+SHADOW_DECK = """
+sphe -2.3 0 4.2 7
+opaq 0.3 0.7 0.9 0.4 10
+sphe 0 0 -10012 10000
+opaq 0.8 0.8 0.7 0 1
+plig 0.5 -0.3 1 170 160 150
+elig 0.15
+back 30 40 90
+eyep 0 -90 45
+refp 0 0 -6
+vang 30 30
+size 32
+rend x.sunimg
+"""
+
+
+def test_exact_level_pulls_a_moved_shadow_edge_back():
+    """The light turned by a fraction of a pixel's worth: shadow-edge pixels whose
+    centres changed side are matched by the colour across the edge, scaled by how far
+    the centre lies past it (a residual linear in the edge's position, not a jump),
+    and the loss's gradient turns the light back."""
+    truth = scene_from_text(SHADOW_DECK).astype(jnp.float64)
+    target = np.asarray(rtjax.render(truth))
+    _, exact = _levels(truth, target)
+    turn = jnp.array([0.04, 0.03, 0.0])  # the shadow edge moves by ~0.5 pixel
+    start = truth.replace(light_dirs=truth.params.light_dirs + turn)
+    selection = Selection(start, "light", None)
+    objective = Objective(selection, None, "l2", 10.0)
+    y = {"scene": selection.y0()}
+    e = rtjax.render_samples(start, exact.xy, step=exact.step, edges=exact.width, parts=True)
+    centre, flipped, sx, t = (np.asarray(a) for a in (e.centre, e.flipped, e.shadow_x, exact.target))
+    model = np.asarray(objective.model(y, exact))
+    # (the light's turn also changes the lit floor's shading by a few levels)
+    crossed = (np.asarray(e.x) == 0) & (np.abs(centre - t).max(1) > 30) & (np.abs(flipped - t).max(1) < 10)
+    assert crossed.sum() >= 3
+    c, f = centre[crossed], flipped[crossed]
+    np.testing.assert_allclose(model[crossed], c + (1 - sx[crossed, None]) * (f - c), atol=1e-9)
+    assert np.all(np.abs(model - t)[crossed] <= sx[crossed, None] * np.abs(c - f) + np.abs(f - t[crossed]) + 1e-9)
+    assert np.all(sx[crossed] < 1)
+
+    def loss(y):
+        return 0.5 * jnp.sum(objective.residuals(y, exact) ** 2)
+
+    grad = jax.grad(loss)(y)
+    g = np.asarray(grad["scene"]["light"]).ravel()
+    # the way back, in the plane of directions (the light vector's length is no parameter)
+    unit = np.asarray(start.params.light_dirs[0]) / np.linalg.norm(np.asarray(start.params.light_dirs[0]))
+    back = -np.asarray(turn) + np.dot(np.asarray(turn), unit) * unit
+    assert g @ -back / (np.linalg.norm(g) * np.linalg.norm(back)) > 0.7  # measured 0.85
+    step = {"scene": jax.tree_util.tree_map(lambda a, b: a - 0.5 * float(loss(y)) / float(np.sum(g * g)) * b, y["scene"], grad["scene"])}
+    assert float(loss(step)) < float(loss(y))
+
+
 def test_apply_nuisance_takes_the_units_fit_reports():
     """FitResult.nuisance gives gain and γ themselves; the solver moves their logs."""
     image = jnp.array([[[0.0, 51.0, 200.0]]])
