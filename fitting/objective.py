@@ -77,13 +77,24 @@ def downsample(image: np.ndarray, height: int, width: int) -> np.ndarray:
     return np.einsum("jw,iwc->ijc", b, np.einsum("ih,hwc->iwc", a, image))  # two small products, not one 5-index sum
 
 
-def schedule_widths(width: int, levels: int | Sequence[int] | None) -> list[int]:
+def schedule_widths(width: int, levels: int | Sequence[int] | None, blurred: bool = False) -> list[int]:
     """Image widths from coarse to fine, ending at the full width.
 
-    An int k gives k levels halving the width (none below 48 pixels); a sequence is
-    taken as given (sorted, capped at the full width)."""
-    if levels is None or isinstance(levels, int):
-        k = 3 if levels is None else int(levels)
+    Default: an eighth, a quarter and the full width (a quarter, a half and the full
+    width where an eighth would be below 48 pixels): the coarse levels do the
+    travelling, cheaply, and the full-size level, matched at pixel centres, the rest
+    (measured on the sample deck, README "How well it works"). `blurred` (a fitted
+    blur, whose full-size level renders three points per sample): three levels
+    halving the width, so that a half-size level brings it closer first. An int k
+    gives k levels halving the width (none below 48 pixels); a sequence is taken as
+    given (sorted, capped at the full width)."""
+    if levels is None and blurred:
+        levels = 3
+    if levels is None:
+        k = next((k for k in (3, 2, 1) if width >> k >= 48), 0)
+        return sorted({width >> k, width >> max(k - 1, 0), width}) if k else [width]
+    if isinstance(levels, int):
+        k = int(levels)
         out = [width]
         while len(out) < k and out[0] // 2 >= 48:
             out.insert(0, out[0] // 2)
@@ -174,14 +185,14 @@ def edge_band(image: np.ndarray, threshold: float = 6.0, grow: int = 2) -> np.nd
 
 
 def make_levels(target: np.ndarray, weight: np.ndarray, widths: Sequence[int], edges: Sequence[float], dtype, seed: int = 0,
-                exact: Sequence[bool] = (), exact_samples: int = 6) -> list[Samples]:
+                exact: Sequence[bool] = (), exact_share: float = 0.25) -> list[Samples]:
     """The coarse-to-fine pyramid as `Samples` of one size K (the coarsest level's pixel
     count): the coarsest level is its whole grid of area-averaged pixels; finer levels
     take K of their pixels, those near the target's edges first (where positions are
     decided), then a random spread of the rest. `exact`: per level, whether it is
-    matched at pixel centres (default: none); such a level takes all its pixels near
-    edges and as many others (at least K, at most `exact_samples`·K in all): at pixel
-    centres, positions are decided by which side of each edge pixel centres fall on,
+    matched at pixel centres (default: none); such a level takes every pixel near an
+    edge and as many others while the total stays within `exact_share` of its pixels
+    (and at least K in all): at pixel centres, positions are decided by which side of each edge pixel centres fall on,
     so every one counts."""
     height, width = target.shape[:2]
     rng = np.random.default_rng(seed)
@@ -195,11 +206,11 @@ def make_levels(target: np.ndarray, weight: np.ndarray, widths: Sequence[int], e
         t, wt = small.reshape(-1, 3), wsmall.reshape(-1, 1)
         band = np.flatnonzero(edge_band(small).ravel())
         size = k if k is not None else len(xy)
-        if x:  # (a noisy target's band can be most of the image)
-            size = min(max(size, 2 * len(band)), exact_samples * size)
+        if x:  # every edge pixel, and as many others up to `exact_share` of them all
+            size = max(size, len(band), min(2 * len(band), int(exact_share * len(xy))))
         else:
             k = size
-        take = min(len(band), (3 * size) // 4)
+        take = len(band) if x else min(len(band), (3 * size) // 4)
         if len(xy) <= size:  # the coarsest level, or one no larger: all of it
             pick = np.arange(len(xy))
         else:

@@ -89,7 +89,7 @@ def prepare_fit(scene, target, free, spheres, depth, levels, edges, polish, loss
         y["nuisance"] = nuisance_y0(nuisance, jax.tree_util.tree_leaves(y["scene"])[0].dtype)
     if jac is None:
         jac = "bwd" if selection.size() > 200 else "fwd"
-    widths = schedule_widths(full.structure.width, levels)
+    widths = schedule_widths(full.structure.width, levels, blurred="blur" in (nuisance or ()))
     given = [1.0] if edges is None else [float(e) for e in np.ravel(edges)]
     if not given or min(given) <= 0:
         raise FitError(f"edge widths must be > 0, not {edges}")
@@ -102,10 +102,7 @@ def prepare_fit(scene, target, free, spheres, depth, levels, edges, polish, loss
         per_level[-1], exact[-1] = float(polish), True
     elif polish:
         widths, per_level, exact = widths + [widths[-1]], per_level + [float(polish)], exact + [bool(exact_polish)]
-    # a blurred (photo-like) target: the full-size level renders three points per sample
-    # (`Objective.model`) and its edges decide less, so it keeps the common sample count
-    pyramid = make_levels(target, prepare_mask(mask, *target.shape[:2]), widths, per_level, dtype, exact=exact,
-                          exact_samples=4 if "blur" in (nuisance or ()) else 6)
+    pyramid = make_levels(target, prepare_mask(mask, *target.shape[:2]), widths, per_level, dtype, exact=exact)
     objective = Objective(selection, depth, loss, loss_scale)
     return full, selection, y, jac, widths, pyramid, objective
 
@@ -143,8 +140,9 @@ def fit(
       restricts per-sphere families to some spheres.
     solver: 'lm' (Levenberg–Marquardt, default), 'gn' (Gauss–Newton), 'dogleg' (least
       squares) or 'bfgs' (minimisation of the same loss).
-    max_steps: iterations in all, across the coarse-to-fine `levels` (an int: that many
-      levels, halving the width down to 48 pixels; a list of widths; 1: full size only).
+    max_steps: iterations in all, across the coarse-to-fine `levels` (default: an eighth,
+      a quarter and the full width, see `schedule_widths`; an int: that many levels,
+      halving the width down to 48 pixels; a list of widths; 1: full size only).
       Every level renders the same number of samples (the coarsest level's pixel
       count; finer levels take the pixels near the target's edges and a spread of the
       rest), so one compiled step serves all levels.
