@@ -192,8 +192,8 @@ def make_levels(target: np.ndarray, weight: np.ndarray, widths: Sequence[int], e
     decided), then a random spread of the rest. `exact`: per level, whether it is
     matched at pixel centres (default: none); such a level takes every pixel near an
     edge and as many others while the total stays within `exact_share` of its pixels
-    (and at least K in all): at pixel centres, positions are decided by which side of each edge pixel centres fall on,
-    so every one counts."""
+    (and at least K in all): at pixel centres, positions are decided by which side of
+    each edge pixel centres fall on, so every one counts."""
     height, width = target.shape[:2]
     rng = np.random.default_rng(seed)
     levels = []
