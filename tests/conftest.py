@@ -13,6 +13,9 @@ import threading
 import jax
 
 jax.config.update("jax_enable_x64", True)
+# the command's compilation cache (rtjax.cli.cache_dir) stays off in tests, subprocesses
+# included; tests/test_cli.py turns it on where it checks it
+os.environ.setdefault("RTJAX_CACHE", "off")
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)

@@ -33,8 +33,8 @@ SMALL = (
 LINE = re.compile(r"^(\S+(?: \+ \S+)*)  (\d+)x(\d+)  (\d+\.\d\d) s$")
 
 
-def run_cli(*args: str, cwd: str | os.PathLike | None = None) -> subprocess.CompletedProcess:
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
+def run_cli(*args: str, cwd: str | os.PathLike | None = None, **env_vars: str) -> subprocess.CompletedProcess:
+    env = dict(os.environ, JAX_PLATFORMS="cpu", **env_vars)
     return subprocess.run([sys.executable, "-m", "rtjax", *args], capture_output=True, text=True, cwd=cwd, env=env, timeout=300)
 
 
@@ -89,6 +89,32 @@ def test_sample_deck_renders_a_sun_raster_pillow_reads(tmp_path):
     assert np.array_equal(pil_rgb(out / "ex2s3.png"), rgb)  # the preview is the same picture
     assert np.array_equal(read_sunraster(out / "ex2s3.sunimg"), rgb)
     assert len(np.unique(rgb.reshape(-1, 3), axis=0)) > 1000  # a rendered scene, not a flat fill
+
+
+def test_compiled_programs_are_kept_between_runs(tmp_path):
+    """RTJAX_CACHE names the folder where the command keeps XLA's compiled programs; a
+    second run of the same deck loads them and writes the same image."""
+    cache, out = tmp_path / "cache", tmp_path / "out"
+    first = run_cli("render", SAMPLE, "-o", str(out / "1"), RTJAX_CACHE=str(cache))
+    assert first.returncode == 0, first.stderr
+    kept = sorted(os.listdir(cache))
+    assert kept and any("render" in name for name in kept)
+    second = run_cli("render", SAMPLE, "-o", str(out / "2"), RTJAX_CACHE=str(cache))
+    assert second.returncode == 0, second.stderr
+    assert sorted(os.listdir(cache)) == kept  # nothing compiled anew
+    assert (out / "1" / "ex2s3.sunimg").read_bytes() == (out / "2" / "ex2s3.sunimg").read_bytes()
+
+
+@pytest.mark.parametrize("env, expected", [
+    ({"RTJAX_CACHE": "/somewhere"}, "/somewhere"),
+    ({"RTJAX_CACHE": "off"}, None),
+    ({"XDG_CACHE_HOME": "/xdg"}, os.path.join("/xdg", "rtjax", "xla")),
+])
+def test_cache_dir_follows_the_environment(monkeypatch, env, expected):
+    monkeypatch.delenv("RTJAX_CACHE", raising=False)
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    assert cli.cache_dir() == expected
 
 
 def test_bad_deck_subprocess_exit_2_one_line_nothing_written(tmp_path):
