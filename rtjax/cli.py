@@ -340,7 +340,7 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--solver", choices=("lm", "gn", "dogleg", "bfgs"), default="lm", help="solver (default lm: Levenberg-Marquardt)")
     f.add_argument("-o", "--output", default=None, help="the fitted deck (default DECK_fitted.dat); image, report and plot go beside it")
     f.add_argument("--max-steps", type=_positive_int, default=30, help="iterations in all (default 30)")
-    f.add_argument("--levels", type=_int_list, default=None, help="coarse-to-fine: a count of levels, or widths such as 100,200,400 (default 3)")
+    f.add_argument("--levels", type=_int_list, default=None, help="coarse-to-fine: a count of levels halving the width, or widths such as 50,100,400 (default: an eighth, a quarter, full)")
     f.add_argument("--edges", type=_float_list, default=None, help="edge width per level in pixels, e.g. 2,1,1 (default 1)")
     f.add_argument("--polish", type=float, default=1.0,
                    help="edge width in pixels of the full-size level (default 1; 0: no special full-size level)")
