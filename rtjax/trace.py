@@ -85,11 +85,12 @@ def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, soft
                                        active=hit.live, grid=m.grids[i] if m.grids else None)
         elif sided:
             vis, there, x = edges.soft_shadow(hit, light, p.centers, p.radii, m.tmin, m.shadow_factor, *soft)
-            change = local_light(d, ks, beta, p.ke, nl, cos_g, there, colour) - local_light(d, ks, beta, p.ke, nl, cos_g, vis, colour)
-            flip = flip.nearer(edges.Flip(x, change))
         else:
             vis = edges.soft_shadow(hit, light, p.centers, p.radii, m.tmin, m.shadow_factor, *soft)
-        total = total + local_light(d, ks, beta, p.ke, nl, cos_g, vis, colour)
+        term = local_light(d, ks, beta, p.ke, nl, cos_g, vis, colour)
+        if sided:
+            flip = flip.nearer(edges.Flip(x, local_light(d, ks, beta, p.ke, nl, cos_g, there, colour) - term))
+        total = total + term
     return (total, flip) if sided else total
 
 
@@ -154,10 +155,10 @@ def segment(
     local = shade_hit(s, p, m, hit, n, -d, soft)
     flip = rays.flip
     if soft is not None and sided:
-        local, here = local
-        if flip is not None:  # weighted like the colour it would change
-            flip = flip.nearer(here._replace(x=jnp.where(hit.found & (rays.weight > 0), here.x, jnp.inf),
-                                             delta=rays.weight * here.delta))
+        local, shadow = local
+        if flip is not None:  # this hit's nearest shadow edge, weighted like the colour it would change
+            seen = hit.found & (rays.weight > 0)
+            flip = flip.nearer(edges.Flip(jnp.where(seen, shadow.x, jnp.inf), rays.weight * shadow.delta))
     colour = rays.colour + rays.weight * jnp.where(hit.found, local, p.background[:, None])
     if not s.needs_secondary_rays:
         return rays._replace(weight=jnp.zeros_like(rays.weight), colour=colour, flip=flip), None, hit
