@@ -184,3 +184,16 @@ def test_a_fitted_blur_is_three_renders_at_full_size_and_wider_edges_below():
     np.testing.assert_allclose(np.asarray(objective.model(y, coarse)), expect, rtol=0, atol=1e-9)
     g = jax.grad(lambda b: jnp.sum(objective.model({"scene": y["scene"], "nuisance": {"blur": b}}, full)))(jnp.log(sigma))
     assert np.isfinite(float(g)) and abs(float(g)) > 0
+
+
+def test_default_schedule_an_eighth_a_quarter_and_full_size():
+    from fitting.objective import schedule_widths
+
+    assert schedule_widths(400, None) == [50, 100, 400]
+    assert schedule_widths(240, None) == [60, 120, 240]  # an eighth would be below 48 pixels
+    assert schedule_widths(96, None) == [48, 96]
+    assert schedule_widths(64, None) == [64]
+    # a fitted blur: three levels halving the width; an int: that many halving levels
+    assert schedule_widths(400, None, blurred=True) == [100, 200, 400]
+    assert schedule_widths(400, 4) == [50, 100, 200, 400]
+    assert schedule_widths(400, [50, 100, 900]) == [50, 100, 400]
