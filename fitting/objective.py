@@ -256,8 +256,8 @@ class Objective:
         three points around it, σ√2 away at 120° from each other: the same covariance
         σ²·I as the photo's Gaussian, for edges and for what lies inside outlines alike
         (refracted and reflected detail, highlights). Measured on the sample deck, a
-        photo-like target (README): largest centre error 0.29 → 0.137 units (0.099 with
-        every pixel at full size)."""
+        photo-like target (README): largest centre error 0.29 → 0.091 units (0.137 with
+        the full-size level capped at a quarter of the pixels)."""
         scene = rtjax.Scene(self.selection.scene.structure, self.selection.params(y["scene"]))
         nuisance = y.get("nuisance", {})
 

@@ -158,9 +158,9 @@ def fit(
       targets that are themselves antialiased. Measured on the sample deck, ±3 units,
       three starts: largest centre error 0.0076, 0.062, 0.0056 units (exact) against
       0.047, 0.125, 0.055 (0.02-pixel box polish); see README "How well it works".
-    loss: 'cauchy' (default, robust), 'huber', or 'l2'; `loss_scale` in levels (levels not
-      matched at pixel centres, the coarse ones, use `objective.COARSE_SCALE` times it
-      unless a blur is fitted).
+    loss: 'cauchy' (default, robust), 'huber', or 'l2'; `loss_scale` in levels (levels
+      coarser than the image use `objective.COARSE_SCALE` times it unless a blur is
+      fitted).
     nuisance: fitted jointly with the scene for photo-like targets: 'gain' and 'gamma'
       (model = 255·(gain·I/255)^γ) and 'blur' (a Gaussian σ in pixels: a wider box
       filter at edges on coarse levels, the mean of three renders around each sample
