@@ -279,9 +279,7 @@ class Objective:
         if not samples.exact:
             return apply_nuisance(render(samples.xy), nuisance, logs=True)
         e = render(samples.xy, parts=True)
-        centre, inside, outside, flipped = (apply_nuisance(c, nuisance, logs=True)
-                                            for c in (e.centre, e.inside, e.outside, e.flipped))
-        across = jnp.where((e.x > 0)[:, None], outside, inside)  # the silhouette's side the centre is not on
+        centre, across, flipped = (apply_nuisance(c, nuisance, logs=True) for c in (e.centre, e.across, e.flipped))
         # the side the target shows: the centre's, across the silhouette, or across the
         # shadow edge (whichever colour is nearest the target's)
         miss = [jnp.sum((samples.target - jax.lax.stop_gradient(c)) ** 2, -1) for c in (centre, across, flipped)]
