@@ -279,7 +279,9 @@ class Objective:
         if not samples.exact:
             return apply_nuisance(render(samples.xy), nuisance, logs=True)
         e = render(samples.xy, parts=True)
-        centre, across, flipped = (apply_nuisance(c, nuisance, logs=True) for c in (e.centre, e.across, e.flipped))
+        centre, inside, outside, flipped = (apply_nuisance(c, nuisance, logs=True)
+                                            for c in (e.centre, e.inside, e.outside, e.flipped))
+        across = jnp.where((e.x > 0)[:, None], outside, inside)  # the silhouette's side the centre is not on
         # the side the target shows: the centre's, across the silhouette, or across the
         # shadow edge (whichever colour is nearest the target's)
         miss = [jnp.sum((samples.target - jax.lax.stop_gradient(c)) ** 2, -1) for c in (centre, across, flipped)]

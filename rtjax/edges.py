@@ -26,9 +26,7 @@ Not covered: a second edge in the same pixel (the nearer one in pixels wins, cho
 by a bound on the distance, see `_candidates`), the
 specular term's cut-off at a terminator, and the curvature of an outline within a
 pixel. As `width` → 0, α becomes a step and the image is the plain one. Cost: the
-chain with its differentials (pass 1, `EdgeWatch`), plus, for the edge pixels only, the
-chain retraced from the eye with both sides taken at the edge's segment (pass 2,
-`Detour`).
+chain with its differentials, plus a second chain from the edge's segment on.
 """
 
 from __future__ import annotations
@@ -232,31 +230,25 @@ class Best(NamedTuple):
 
     score: Float[Array, " p"]  # |δ| in sample steps (inf: none yet)
     edge: Int[Array, " p"]  # its sphere, or −1
-    level: Int[Array, " p"]  # the segment of the chain that passes it (0: the primary ray)
+    on_hit: Bool[Array, " p"]  # the ray met that sphere (else it passed beside it)
+    rays: object  # the chain's rays at that segment (trace.Rays), before it
+    diff: Differentials
 
 
 class EdgeWatch:
-    """Folded over a chain's segments (pass 1, `trace._chain`'s hook): keeps, per pixel,
-    the visible silhouette nearest to its ray and the segment where it was seen.
-    Visible: the segment's ray meets that sphere first, from outside; or it misses it
-    and passes closest to it in front of whatever it meets.
-
-    Only the segment's index is kept, not its rays: pass 2 retraces the chain from the
-    eye to there (`Detour`), which costs less than carrying a copy of every pixel's rays
-    and differentials through the chain."""
+    """Folded over a chain's segments: keeps, per pixel, the visible silhouette nearest
+    to its ray. Visible: the segment's ray meets that sphere first, from outside; or it
+    misses it and passes closest to it in front of whatever it meets."""
 
     def __init__(self, centers, radii, tmin, width: float):
         self.centers, self.radii, self.tmin, self.width = centers, radii, tmin, width
 
-    def empty(self, rays) -> Best:
+    def empty(self, rays, diff: Differentials) -> Best:
         """No edge found yet (the fold's start)."""
         n = rays.weight.shape
-        return Best(jnp.full(n, jnp.inf, rays.o.dtype), jnp.full(n, -1, jnp.int32), jnp.zeros(n, jnp.int32))
+        return Best(jnp.full(n, jnp.inf, rays.o.dtype), jnp.full(n, -1, jnp.int32), jnp.zeros(n, bool), rays, diff)
 
-    def before(self, rays, diff, best: Best):
-        return rays, None, best
-
-    def after(self, rays, diff: Differentials, hit: spheres.Hit, best: Best) -> Best:
+    def __call__(self, rays, diff: Differentials, hit: spheres.Hit, best: Best) -> Best:
         n = self.centers.shape[0]
         tab = spheres.table(rays.o, rays.d, self.centers) if hit.table is None else hit.table
         sg = jax.lax.stop_gradient
@@ -277,65 +269,45 @@ class EdgeWatch:
         cc, rr = _chosen_or_regular(edge, rays.o, rays.d, self.centers, self.radii)
         delta = edge_terms(*sg((rays.o, rays.d, ox, dx, oy, dy, cc, rr)))[0]
         score = jnp.where((edge >= 0) & (jnp.abs(delta) < self.width), jnp.abs(delta), jnp.inf)
-        better = score < best.score
-        return Best(jnp.where(better, score, best.score), jnp.where(better, edge, best.edge),
-                    jnp.where(better, rays.level, best.level))
+        edge = jnp.where(jnp.isfinite(score), edge, -1)
+        here = Best(score, edge, hit.index == edge, rays, diff)
+        better = here.score < best.score
+        return jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), here, best)
 
 
-#: `Detour(at_edge=True)`: how far past the edge, in box widths, each side is traced.
+class Sides(NamedTuple):
+    """Both sides of each pixel's chosen edge: rays through the centroids of the two
+    parts of the pixel's box, and the fraction α on the edge sphere's side."""
+
+    edge: Int[Array, " p"]
+    alpha: Float[Array, " p"]
+    x: Float[Array, " p"]  # the pixel centre's signed distance to the edge in box widths, > 0 inside
+    o_in: Float[Array, "3 p"]
+    d_in: Float[Array, "3 p"]
+    o_out: Float[Array, "3 p"]
+    d_out: Float[Array, "3 p"]
+
+
+#: `both_sides(at_edge=True)`: how far past the edge, in box widths, each side is traced.
 ACROSS = 0.05
 
 
-class Side(NamedTuple):
-    """Pass 2's per-ray state: which edge to step across and where; what was found there."""
+def both_sides(best: Best, centers, radii, width: float, at_edge: bool = False) -> Sides:
+    """Coverage α (differentiable in the scene) and the rays through the centroids of
+    the inside and outside parts of the pixel's box, offset along the ray differentials.
 
-    edge: Int[Array, " p"]  # the pixel's edge sphere (−1: a padding slot)
-    level: Int[Array, " p"]  # the segment that passes it
-    inside: Bool[Array, " p"]  # trace the sphere's side of it (else the other)
-    alpha: Float[Array, " p"]  # the box's fraction on the sphere's side (set at `level`)
-    x: Float[Array, " p"]  # the centre's signed distance to the edge in box widths, > 0 inside
+    `at_edge`: instead, the rays just inside and just outside the edge (`ACROSS` box
+    widths from it) where it passes nearest to the pixel's centre: the colours a
+    pixel-centre sample takes when the edge moves across it."""
+    r0, df = best.rays, best.diff
+    c, r = _chosen_or_regular(best.edge, r0.o, r0.d, centers, radii)
+    delta, nx, ny, _, _ = edge_terms(r0.o, r0.d, *df, c, r)
+    alpha, z_in, z_out = split_box(-delta / width, nx, ny)
+    if at_edge:  # the edge lies at z = −x = δ/width along the inward normal
+        z_in, z_out = delta / width + ACROSS, delta / width - ACROSS
 
+    def ray(z):  # z along the inward normal −(nx, ny), in box sides
+        sx, sy = -z * width * nx, -z * width * ny
+        return r0.o + sx * df.ox + sy * df.oy, normalize(r0.d + sx * df.dx + sy * df.dy)
 
-class Detour:
-    """Pass 2 of the silhouette mode (`trace._chain`'s hook): each ray retraces its
-    pixel's chain from the eye; at the segment where the pixel's edge was seen it steps
-    across the box, along the ray differentials, to the centroid of the edge sphere's
-    part of the box (`inside`) or of the other part, and that segment meets the sphere
-    (grazing its outline if the offset ray misses it) or has it removed. There it also
-    records the coverage α (differentiable in the scene) and the centre's distance x.
-
-    `at_edge`: instead, one ray per pixel, just across the edge from the pixel's centre
-    (`ACROSS` box widths past it, where it passes nearest to the centre): the colour a
-    pixel-centre sample takes when the edge moves across it (`inside` is then decided
-    there: the side the centre is not on)."""
-
-    def __init__(self, centers, radii, width: float, at_edge: bool = False):
-        self.centers, self.radii, self.width, self.at_edge = centers, radii, width, at_edge
-
-    @staticmethod
-    def start(edge, level, inside, dtype) -> Side:
-        zero = jnp.zeros(edge.shape, dtype)
-        return Side(edge, level, inside, zero, zero)
-
-    def before(self, rays, diff: Differentials, side: Side):
-        at = (rays.level == side.level) & (side.edge >= 0)
-        here = jnp.where(at, side.edge, -1)
-        c, r = _chosen_or_regular(here, rays.o, rays.d, self.centers, self.radii)
-        delta, nx, ny, _, _ = edge_terms(rays.o, rays.d, *diff, c, r)
-        x = -delta / self.width
-        alpha, z_in, z_out = split_box(x, nx, ny)
-        inside = side.inside
-        if self.at_edge:  # the edge lies at z = −x along the inward normal
-            z_in, z_out = -x + ACROSS, -x - ACROSS
-            inside = jax.lax.stop_gradient(x) <= 0
-        z = jnp.where(inside, z_in, z_out)  # along the inward normal −(nx, ny), in box sides
-        sx, sy = -z * self.width * nx, -z * self.width * ny
-        o = rays.o + sx * diff.ox + sy * diff.oy
-        d = normalize(rays.d + sx * diff.dx + sy * diff.dy)
-        rays = rays._replace(o=jnp.where(at, o, rays.o), d=jnp.where(at, d, rays.d))
-        toggles = (jnp.where(inside, -1, here), jnp.where(inside, here, -1))  # (exclude, force)
-        side = side._replace(alpha=jnp.where(at, alpha, side.alpha), x=jnp.where(at, x, side.x))
-        return rays, toggles, side
-
-    def after(self, rays, diff, hit, side: Side) -> Side:
-        return side
+    return Sides(best.edge, alpha, -delta / width, *ray(z_in), *ray(z_out))

@@ -121,7 +121,7 @@ def _render(params: Params, structure: Structure, depth: int, spp: int, tile: in
 def colours_at(s: Structure, p: Params, xy, step, depth: int, tile: int, edges: float, parts: bool = False):
     """Clamped colours (3, K) seen through image positions xy (2, K) (pixels of the
     scene's image). In the silhouette mode, `step` is the sample spacing in pixels: the
-    box over which edges are filtered is `edges`·`step` pixels wide; `parts`: (11, K),
+    box over which edges are filtered is `edges`·`step` pixels wide; `parts`: (14, K),
     the centre colours and the edge blend's parts (`trace.trace_edges`)."""
     if isinstance(edges, (int, float)) and edges == 0:
         o, d = rays_through(p.eye, p.refp, p.vang, s.width, s.height, xy)
@@ -145,15 +145,16 @@ def colours_at(s: Structure, p: Params, xy, step, depth: int, tile: int, edges: 
 class EdgeSamples(NamedTuple):
     """`render_samples(..., parts=True)`: what matching a target sampled at pixel
     centres needs. The colour at each sample's centre (shadows sharp); for its nearest
-    silhouette, the colour traced just across it from the centre (on the side the
-    centre is not on), where it passes nearest to the centre, and the centre's signed
-    distance to that edge; for its nearest shadow edge (over the chain: seen directly,
-    in mirrors, through glass), the centre's colour had it lain on the edge's other
-    side, and its distance to that edge. Without a silhouette, across = centre and
-    x = 0; without a shadow edge within reach, flipped = centre and shadow_x = inf."""
+    silhouette, the colours traced just on the edge sphere's side of it and just on the
+    other, where it passes nearest to the centre, and the centre's signed distance to
+    that edge; for its nearest shadow edge (over the chain: seen directly, in mirrors,
+    through glass), the centre's colour had it lain on the edge's other side, and its
+    distance to that edge. Without a silhouette, inside = outside = centre and x = 0;
+    without a shadow edge within reach, flipped = centre and shadow_x = inf."""
 
     centre: Float[Array, "k 3"]
-    across: Float[Array, "k 3"]  # traced just across the silhouette from the centre
+    inside: Float[Array, "k 3"]  # traced on the edge sphere's side
+    outside: Float[Array, "k 3"]  # traced on the other side
     x: Float[Array, " k"]  # the centre's signed distance to the silhouette in box widths, > 0 inside
     flipped: Float[Array, "k 3"]  # the centre's colour across its nearest shadow edge
     shadow_x: Float[Array, " k"]  # the centre's distance to that edge in box widths (≥ 0)
@@ -192,7 +193,7 @@ def render_samples(
     width = jnp.asarray(edges, dtype)
     out = _render_samples(scene.params.astype(dtype), xy.T, jnp.asarray(step, dtype), width, scene.structure, depth, tile,
                           aware, parts)
-    return EdgeSamples(out[:3].T, out[3:6].T, out[6], out[7:10].T, out[10]) if parts else out.T
+    return EdgeSamples(out[:3].T, out[3:6].T, out[6:9].T, out[9], out[10:13].T, out[13]) if parts else out.T
 
 
 @functools.partial(jax.jit, static_argnames=("structure", "depth", "tile", "aware", "parts"))

@@ -192,68 +192,66 @@ TIER_DIVISOR = 8
 TIER_MIN = 4096
 
 
-def tiers(n: int, least: int = TIER_MIN) -> tuple[int, ...]:
+def tiers(n: int) -> tuple[int, ...]:
     """Buffer sizes of the chain's tiers for `n` rays: `n`, then `n`/8 when that is at
-    least `least` (static). On the sample deck 42 % of the rays go on after the
+    least `TIER_MIN` (static). On the sample deck 42 % of the rays go on after the
     first segment, 28 % after the second and 3.5 % after the third."""
     small = n // TIER_DIVISOR
-    return (n, small) if small >= least else (n,)
+    return (n, small) if small >= TIER_MIN else (n,)
 
 
 def _gather(tree, sel):
     return jax.tree_util.tree_map(lambda a: a[..., sel], tree)
 
 
-def _chain(s, p, m, rays, depth, diff=None, width=0.0, hook=None, state=None, sided=False, least=TIER_MIN):
+def _chain(s, p, m, rays, depth, diff=None, width=0.0, toggles=None, watch=None, sided=False):
     """Segments until `rays.level` passes `depth`: one `lax.scan` body (compiled once,
     whatever the depth), each segment skipped at run time by a `lax.cond` once no ray is
-    alive (both modes of differentiation go through `lax.cond`).
+    alive (both modes of differentiation go through `lax.cond`). `toggles` alter the
+    first segment only.
 
     Wavefront compaction: most rays end after a segment or two, but a scan over all of
     them pays for every ray at every segment. So the chain runs in `tiers`: a tier's
     segments run while more rays are alive than the next tier holds; then the live ones
-    (their state, differentials and the hook's per-ray state) are packed into the next
-    tier's buffer, in order, traced on there and scattered back. Each ray meets the same
+    (their state, differentials, toggles and watch) are packed into the next tier's
+    buffer, in order, traced on there and scattered back. Each ray meets the same
     arithmetic either way; the image is the same.
 
-    `hook` (silhouette mode: `edges.EdgeWatch`, `edges.Detour`) keeps per-ray `state`
-    along the chain: around each segment, `hook.before(rays, diff, state)` → (rays,
-    toggles, state) may alter the segment's rays and its hit (`spheres.Hit`'s exclude
-    and force), and `hook.after(rays, diff, hit, state)` → state folds what the segment
-    saw. Returns the final rays and the hook's state."""
-
-    def step(r, df, st):
-        tg = None
-        if hook is not None:
-            r, tg, st = hook.before(r, df, st)
-        r2, df2, h = segment(s, p, m, r, depth, tg, df, width, sided)
-        return r2, df2, (st if hook is None else hook.after(r, df, h, st))
-
+    `watch(rays, diff, hit, best)` → best is folded over the segments (silhouette mode)."""
     if not s.needs_secondary_rays:
-        rays2, _, state = step(rays, diff, state)
-        return rays2, state
-    sizes = tiers(rays.weight.shape[0], least)
+        rays2, _, hit = segment(s, p, m, rays, depth, toggles, diff, width, sided)
+        return rays2, None if watch is None else watch(rays, diff, hit, watch.empty(rays, diff))
+    if toggles is None:
+        toggles = (jnp.full(rays.weight.shape, -1, jnp.int32),) * 2
+    best = None if watch is None else watch.empty(rays, diff)
+    sizes = tiers(rays.weight.shape[0])
 
     def body(carry, _, nxt):
-        return jax.lax.cond(jnp.sum(carry[0].weight > 0) > nxt, lambda c: step(*c), lambda c: c, carry), None
+        def run(c):
+            r, df, tg, b = c
+            r2, df2, h = segment(s, p, m, r, depth, tg, df, width, sided)
+            off = jnp.full_like(tg[0], -1)
+            return r2, df2, (off, off), (b if watch is None else watch(r, df, h, b))
 
-    def tier(carry, i):
+        return jax.lax.cond(jnp.sum(carry[0].weight > 0) > nxt, run, lambda c: c, carry), None
+
+    def tier(state, i):
         nxt = sizes[i + 1] if i + 1 < len(sizes) else 0
-        carry, _ = jax.lax.scan(functools.partial(body, nxt=nxt), carry, length=depth + 1)
+        state, _ = jax.lax.scan(functools.partial(body, nxt=nxt), state, length=depth + 1)
         if not nxt:
-            return carry
+            return state
         # at most `nxt` rays are alive now (or none: every ray ended within the depth)
-        live = carry[0].weight > 0
+        live = state[0].weight > 0
         (sel,) = jnp.nonzero(live, size=nxt, fill_value=0)
         valid = jnp.arange(nxt) < jnp.sum(live)
-        packed = _gather(carry, sel)
+        packed = _gather(state, sel)
         packed = (packed[0]._replace(weight=jnp.where(valid, packed[0].weight, 0)),) + packed[1:]
         done = tier(packed, i + 1)
         to = jnp.where(valid, sel, live.shape[0])  # padding goes nowhere
-        return jax.tree_util.tree_map(lambda a, b: a.at[..., to].set(b, mode="drop"), carry, done)
+        return jax.tree_util.tree_map(lambda a, b: a.at[..., to].set(b, mode="drop"), state, done)
 
-    rays, _, state = tier((rays, diff, state), 0)
-    return rays, state
+    rays, _, _, best = tier((rays, diff, toggles, best), 0)
+    return rays, best
 
 
 def trace(s: Structure, p: Params, o: Float[Array, "3 p"], d: Float[Array, "3 p"], depth: int) -> Float[Array, "3 p"]:
@@ -266,81 +264,62 @@ def trace(s: Structure, p: Params, o: Float[Array, "3 p"], d: Float[Array, "3 p"
     return rays.colour
 
 
-#: Pass 2 of the silhouette mode: a smaller tier is worth its compiled copy from
-#: fewer rays on (its rays run longer chains: edges seen in mirrors and glass).
-EDGE_TIER_MIN = 1024
-
-
-def edge_chunk(n: int) -> int:
-    """Pixels per chunk of pass 2 of the silhouette mode (static): a sixteenth of the
-    rays (at least 2048); chunks past the last edge pixel are skipped at run time, so
-    pass 2 costs what the edges' length needs, whatever share of the image they are."""
-    return min(n, max(2048, -(-n // 16)))
+def edge_capacity(n: int) -> int:
+    """How many pixels pass 2 of the silhouette mode traces: edge pixels are a few per
+    cent of a 400-pixel-wide image and grow like its perimeter, so a quarter of the
+    pixels (at least 4096) covers them; beyond, the surplus keeps its plain colour."""
+    return min(n, max(4096, n // 4))
 
 
 def trace_edges(s: Structure, p: Params, o, d, diff: "edges.Differentials", depth: int, width: float,
-                parts: bool = False) -> Float[Array, "3 p"] | Float[Array, "11 p"]:
+                parts: bool = False) -> Float[Array, "3 p"] | Float[Array, "10 p"]:
     """The silhouette-aware colour of each pixel, clamped.
 
     Pass 1 traces the chain with ray differentials and soft shadow edges, and finds the
     one silhouette edge nearest to its ray (in pixels) over all segments: primary,
-    reflected or refracted, and the segment that passes it. Pass 2 takes the pixels
-    that have one (gathered, `edge_chunk` at a time), retraces their chains from the
-    eye and, at that segment, traces both sides of the edge on from there, through the
+    reflected or refracted. Pass 2 traces, for the pixels that have one (gathered, up to
+    `edge_capacity`), both sides of that edge from its segment on, through the
     centroids of their parts of the pixel (the edge sphere removed on one side, met on
     the other), and blends them by the box-filtered coverage (see `rtjax.edges`): its
     cost follows the edges' length, not the image's area.
 
-    `parts`: instead, (11, P): the colour at the pixel's centre (shadows sharp); the
-    colour traced just across the silhouette from the centre, where it passes nearest
-    to it (the centre's colour where a pixel has none); the centre's signed distance to
-    it in box widths, positive on the sphere's side (0 where none); the centre's colour
-    had it lain on the other side of its nearest shadow edge over the chain (the
-    centre's colour where none), and its distance to that edge in box widths (inf
-    where none).
+    `parts`: instead, (14, P): the colour at the pixel's centre (shadows sharp); the
+    colours traced just inside and just outside the silhouette where it passes nearest
+    to the centre (both the centre's colour where a pixel has none); the centre's
+    signed distance to it in box widths, positive on the sphere's side (0 where none);
+    the centre's colour had it lain on the other side of its nearest shadow edge over
+    the chain (the centre's colour where none), and its distance to that edge in box
+    widths (inf where none).
     """
     m = prepare(s, p)
     watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width)
-    rays = start_rays(o, d, sided=parts)
-    rays, best = _chain(s, p, m, rays, depth, diff, width, watch, watch.empty(rays), sided=parts)
+    rays, best = _chain(s, p, m, start_rays(o, d, sided=parts), depth, diff, width, watch=watch, sided=parts)
     plain = jnp.clip(rays.colour, 0, 255)
     n = o.shape[1]
-    chunk = edge_chunk(n)
-    count = -(-n // chunk)
-    (sel,) = jnp.nonzero(best.edge >= 0, size=count * chunk, fill_value=n)  # n: a padding slot
-    sides = 1 if parts else 2  # parts: the side across from the centre only
-    detour = edges.Detour(p.centers, p.radii, width, at_edge=parts)
+    cap = edge_capacity(n)
+    has = best.edge >= 0
+    (sel,) = jnp.nonzero(has, size=cap, fill_value=0)
+    valid = jnp.arange(cap) < jnp.sum(has)
+    b = jax.tree_util.tree_map(lambda a: a[..., sel], best)
+    side = edges.both_sides(b, p.centers, p.radii, width, at_edge=parts)
+    r0 = b.rays
 
-    def pass2(sel):
-        valid = jnp.tile(sel < n, sides)
+    def two(a, b=None):
+        return jnp.concatenate([a, a if b is None else b], axis=-1)
 
-        def copies(a):  # each pixel once per side traced, inside first
-            return jnp.tile(a[..., jnp.minimum(sel, n - 1)], sides)
-
-        start = start_rays(copies(o), copies(d))._replace(weight=valid.astype(o.dtype))
-        side = edges.Detour.start(jnp.where(valid, copies(best.edge), -1), copies(best.level),
-                                  jnp.arange(sides * chunk) < chunk, o.dtype)
-        out, side = _chain(s, p, m, start, depth, edges.Differentials(*map(copies, diff)), width, detour, side,
-                           sided=parts, least=EDGE_TIER_MIN)
-        colour = jnp.clip(out.colour, 0, 255)
-        if parts:
-            return jnp.concatenate([colour, side.x[None]])
-        inside, outside = jnp.split(colour, 2, axis=-1)
-        alpha = side.alpha[:chunk]
-        return alpha * inside + (1 - alpha) * outside
-
-    rows = 4 if parts else 3
-
-    def each(_, sel):  # chunks past the last edge pixel are skipped
-        return None, jax.lax.cond(sel[0] < n, pass2, lambda sel: jnp.zeros((rows, chunk), o.dtype), sel)
-
-    _, done = jax.lax.scan(each, None, sel.reshape(count, chunk))
-    done = jnp.moveaxis(done, 0, 1).reshape(rows, count * chunk)
+    start = Rays(two(side.o_in, side.o_out), two(side.d_in, side.d_out), two(r0.origin),
+                 two(jnp.where(valid, r0.weight, 0)), two(r0.colour), two(r0.level))
+    none = jnp.full((cap,), -1, jnp.int32)
+    twice = edges.Differentials(*(two(a) for a in b.diff))
+    out, _ = _chain(s, p, m, start, depth, twice, width, (two(none, side.edge), two(side.edge, none)), sided=parts)
+    inside, outside = jnp.split(jnp.clip(out.colour, 0, 255), 2, axis=-1)
+    # padding slots (index 0 repeated) write nowhere: pixel 0 may itself be an edge pixel
+    to = jnp.where(valid, sel, n)
     if not parts:
-        return plain.at[:, sel].set(done, mode="drop")  # padding slots (n) write nowhere
-    # no silhouette: the colour across is the centre's, at distance 0
-    across = jnp.concatenate([plain, jnp.zeros_like(plain[:1])]).at[:, sel].set(done, mode="drop")
-    return jnp.concatenate([plain, across, jnp.clip(rays.colour + rays.flip.delta, 0, 255), rays.flip.x[None]])
+        return plain.at[:, to].set(side.alpha * inside + (1 - side.alpha) * outside, mode="drop")
+    rows = jnp.concatenate([plain, plain, plain, jnp.zeros_like(plain[:1])])
+    rows = rows.at[3:, to].set(jnp.concatenate([inside, outside, side.x[None]]), mode="drop")
+    return jnp.concatenate([rows, jnp.clip(rays.colour + rays.flip.delta, 0, 255), rays.flip.x[None]])
 
 
 def tiled(fn, tile: int, *arrays):
