@@ -24,7 +24,7 @@ import optimistix as optx
 import rtjax
 
 from .errors import FitError
-from .objective import LOSSES, Objective, load_target, make_levels, match_size, nuisance_y0, prepare_mask, schedule_widths
+from .objective import DENOISE, LOSSES, Objective, load_target, make_levels, match_size, nuisance_y0, prepare_mask, schedule_widths
 from .select import Selection
 
 SOLVERS = {
@@ -89,7 +89,8 @@ def prepare_fit(scene, target, free, spheres, depth, levels, edges, polish, loss
         y["nuisance"] = nuisance_y0(nuisance, jax.tree_util.tree_leaves(y["scene"])[0].dtype)
     if jac is None:
         jac = "bwd" if selection.size() > 200 else "fwd"
-    widths = schedule_widths(full.structure.width, levels, blurred="blur" in (nuisance or ()))
+    blurred = "blur" in (nuisance or ())
+    widths = schedule_widths(full.structure.width, levels, blurred=blurred)
     given = [1.0] if edges is None else [float(e) for e in np.ravel(edges)]
     if not given or min(given) <= 0:
         raise FitError(f"edge widths must be > 0, not {edges}")
@@ -102,7 +103,8 @@ def prepare_fit(scene, target, free, spheres, depth, levels, edges, polish, loss
         per_level[-1], exact[-1] = float(polish), True
     elif polish:
         widths, per_level, exact = widths + [widths[-1]], per_level + [float(polish)], exact + [bool(exact_polish)]
-    pyramid = make_levels(target, prepare_mask(mask, *target.shape[:2]), widths, per_level, dtype, exact=exact)
+    pyramid = make_levels(target, prepare_mask(mask, *target.shape[:2]), widths, per_level, dtype, exact=exact,
+                          denoise=DENOISE if blurred else 0.0)
     objective = Objective(selection, depth, loss, loss_scale)
     return full, selection, y, jac, widths, pyramid, objective
 

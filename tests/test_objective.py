@@ -9,7 +9,7 @@ import numpy as np
 from conftest import scene_from_text
 
 import rtjax
-from fitting.objective import Objective, apply_nuisance, make_levels
+from fitting.objective import Objective, apply_nuisance, edge_band, make_levels, smooth
 from fitting.select import Selection
 
 DECK = """
@@ -218,3 +218,33 @@ def test_coarse_levels_widen_the_robust_scale():
     blurred = {**y, "nuisance": {"blur": jnp.asarray(np.log(0.3))}}
     r = (objective.model(blurred, coarse) - coarse.target) * coarse.weight / 255
     np.testing.assert_allclose(np.asarray(objective.residuals(blurred, coarse)), np.asarray(robust(r, "cauchy", 10.0 / 255)), rtol=1e-12)
+
+
+def test_smooth_is_a_normalised_gaussian():
+    impulse = np.zeros((21, 21))
+    impulse[10, 10] = 1
+    x = np.arange(-5, 6)  # 3σ, rounded
+    k = np.exp(-(x**2) / (2 * 1.5**2))
+    k /= k.sum()
+    expected = np.zeros((21, 21))
+    expected[5:16, 5:16] = np.outer(k, k)
+    np.testing.assert_allclose(smooth(impulse, 1.5), expected, atol=1e-15)
+    flat = np.full((8, 9, 3), 7.0)
+    np.testing.assert_allclose(smooth(flat, 1.0), flat)  # edges extended: no darkening at the border
+
+
+def test_denoised_edge_band_finds_the_edges_not_the_noise():
+    """Noise of σ = 4 levels makes most pixels of a two-colour target look like edge
+    pixels; found on the target blurred by 1 pixel (`make_levels(denoise=1)`, what a fit
+    with a fitted blur uses), the band is the edge's neighbourhood alone."""
+    img = np.zeros((40, 60, 3))
+    img[:, 30:] = 200.0
+    noisy = img + np.random.default_rng(0).normal(0, 4, img.shape)
+    assert edge_band(noisy).mean() > 0.5
+    band = edge_band(smooth(noisy, 1.0))
+    assert band[:, 29:31].all()
+    assert not band[:, :24].any() and not band[:, 36:].any()
+    levels = make_levels(noisy, np.ones((40, 60, 1)), [15, 60], [1.0, 1.0], jnp.float64, exact=[False, True], denoise=1.0)
+    xs = np.asarray(levels[-1].xy)[:, 0]
+    # the full-size level: every edge pixel, others up to a quarter of the image
+    assert len(xs) == int(0.25 * 40 * 60) and np.sum(np.abs(xs - 30) < 2) == 4 * 40
