@@ -272,7 +272,7 @@ def edge_capacity(n: int) -> int:
 
 
 def trace_edges(s: Structure, p: Params, o, d, diff: "edges.Differentials", depth: int, width: float,
-                parts: bool = False) -> Float[Array, "3 p"] | Float[Array, "10 p"]:
+                parts: bool = False) -> Float[Array, "3 p"] | Float[Array, "14 p"]:
     """The silhouette-aware colour of each pixel, clamped.
 
     Pass 1 traces the chain with ray differentials and soft shadow edges, and finds the
