@@ -196,9 +196,10 @@ def edge_band(image: np.ndarray, threshold: float = 6.0, grow: int = 2) -> np.nd
     return band
 
 
-def smooth(image: np.ndarray, sigma: float) -> np.ndarray:
-    """A Gaussian blur of σ pixels over the first two axes (edges extended)."""
-    r = max(1, int(3 * sigma + 0.5))
+def smooth(image, sigma: float) -> np.ndarray:
+    """A Gaussian blur of σ pixels over the first two axes, truncated at ⌈3σ⌉ (edges
+    extended): finding a photo's edges (`make_levels`), making a photo-like target."""
+    r = int(np.ceil(3 * sigma))
     k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
     k /= k.sum()
     out = np.asarray(image, np.float64)

@@ -526,18 +526,9 @@ show([img_start2, img_fit2, target, difference(img_fit2, target)],
         The first and the last differ by the nuisance parameters, the last two by the loss.
         """),
         code('''
-def gaussian_blur(image, sigma):
-    r = int(np.ceil(3 * sigma))
-    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
-    k /= k.sum()
-    pad = np.pad(image, ((r, r), (r, r), (0, 0)), mode="edge")
-    rows = sum(k[i] * pad[i:i + image.shape[0]] for i in range(2 * r + 1))
-    return sum(k[i] * rows[:, i:i + image.shape[1]] for i in range(2 * r + 1))
-
-
 def camera(image, gain=1.15, gamma=0.8, blur=0.7):
     """A camera's view of a render: lens blur, then the response 255·(gain·I/255)^gamma."""
-    image = gaussian_blur(np.asarray(image, np.float64), blur)
+    image = fitting.smooth(image, blur)
     return 255 * np.clip(gain * image / 255, 0, 1) ** gamma
 
 
