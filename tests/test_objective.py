@@ -9,7 +9,7 @@ import numpy as np
 from conftest import scene_from_text
 
 import rtjax
-from fitting.objective import Objective, apply_nuisance, edge_band, make_levels, smooth
+from fitting.objective import COARSE_SCALE, Objective, apply_nuisance, edge_band, make_levels, robust, schedule_widths, smooth
 from fitting.select import Selection
 
 DECK = """
@@ -187,8 +187,6 @@ def test_a_fitted_blur_is_three_renders_at_full_size_and_wider_edges_below():
 
 
 def test_default_schedule_an_eighth_a_quarter_and_full_size():
-    from fitting.objective import schedule_widths
-
     assert schedule_widths(400, None) == [50, 100, 400]
     assert schedule_widths(240, None) == [60, 120, 240]  # an eighth would be below 48 pixels
     assert schedule_widths(96, None) == [48, 96]
@@ -202,8 +200,6 @@ def test_default_schedule_an_eighth_a_quarter_and_full_size():
 def test_coarse_levels_widen_the_robust_scale():
     """Levels coarser than the image use a Cauchy scale COARSE_SCALE times wider; the
     full-size levels, and every level of a fit with a blur, the given one."""
-    from fitting.objective import COARSE_SCALE, robust
-
     scene = scene_from_text(DECK).astype(jnp.float64)
     target = np.asarray(rtjax.render(scene.replace(centers=scene.params.centers + 0.3)))
     weight = np.ones(target.shape[:2] + (1,))
@@ -223,7 +219,7 @@ def test_coarse_levels_widen_the_robust_scale():
 def test_smooth_is_a_normalised_gaussian():
     impulse = np.zeros((21, 21))
     impulse[10, 10] = 1
-    x = np.arange(-5, 6)  # 3σ, rounded
+    x = np.arange(-5, 6)  # truncated at ⌈3σ⌉
     k = np.exp(-(x**2) / (2 * 1.5**2))
     k /= k.sum()
     expected = np.zeros((21, 21))
