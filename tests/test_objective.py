@@ -11,6 +11,7 @@ from conftest import scene_from_text
 import rtjax
 from fitting.objective import COARSE_SCALE, Objective, apply_nuisance, edge_band, make_levels, robust, schedule_widths, smooth
 from fitting.select import Selection
+from fitting.solve import prepare_fit
 
 DECK = """
 sphe -2.3 0 0.7 6
@@ -139,8 +140,6 @@ def test_apply_nuisance_takes_the_units_fit_reports():
 
 
 def test_the_full_size_level_is_exact_by_default_and_takes_every_edge_pixel():
-    from fitting.objective import edge_band
-    from fitting.solve import prepare_fit
 
     scene = scene_from_text(DECK, size=48)
     target = np.asarray(rtjax.render(scene))
