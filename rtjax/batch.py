@@ -201,9 +201,14 @@ def _render_grid(params, structure: Structure, depth: int, spp: int, tile: int, 
     s = structure
     n = 1 if mesh is None or split == "frames" else mesh.devices.size
     k, (unit, per) = _pixel_indices(s, n)
+    whole = bool(edges) and n == 1  # the silhouette mode on whole images is `rtjax.render`'s own
+
+    def one(p, k):
+        if whole:
+            return _render_module.render_image(s, p, depth, spp, tile, edges)
+        return _shade(s, p, k, depth, spp, tile, edges)
 
     def local(p, k):
-        one = functools.partial(_shade, s, depth=depth, spp=spp, tile=tile, edges=edges)
         if not batched:
             return one(p, k)
         if mode == "map":
@@ -218,7 +223,7 @@ def _render_grid(params, structure: Structure, depth: int, spp: int, tile: int, 
     else:
         colours = jax.shard_map(local, mesh=mesh, in_specs=(PartitionSpec(AXIS), PartitionSpec()),
                                 out_specs=PartitionSpec(AXIS), check_vma=False)(params, k)
-    return _reassemble(s, colours, n, unit, per)
+    return colours if whole else _reassemble(s, colours, n, unit, per)
 
 
 def _check(structure: Structure, params: Params, depth, spp, dtype, edges, tile):

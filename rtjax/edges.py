@@ -225,6 +225,24 @@ def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, dpx, dpy,
     return hard * jnp.where(edge >= 0, soft, 1)
 
 
+def edge_pixels(keys: Int[Array, "h w"], reach: int) -> Bool[Array, "h w"]:
+    """Pixels whose samples' keys (`trace.hit_key`: the spheres each chain meets and the
+    shadows on them) are not all equal within `reach` samples across and down, and
+    the image's `reach`-wide border.
+
+    A straight edge that crosses a pixel's box (of side ≤ 2·`reach` samples) separates
+    its centre from the corner of its (2·`reach` + 1)² neighbourhood that lies beyond
+    the edge, so a pixel not chosen has no silhouette or shadow edge in its box (bar
+    outlines curving within it, and features narrower than the samples' spacing that
+    fall between them): its plain colour is its box-filtered colour."""
+    k = 2 * reach + 1
+    keys = keys | 1  # odd: unlike the zeros padded around the image
+    padded = jnp.pad(keys, reach, constant_values=0)
+    lo = jax.lax.reduce_window(padded, jnp.uint32(0xFFFFFFFF), jax.lax.min, (k, k), (1, 1), "VALID")
+    hi = jax.lax.reduce_window(padded, jnp.uint32(0), jax.lax.max, (k, k), (1, 1), "VALID")
+    return lo != hi
+
+
 class Best(NamedTuple):
     """The nearest visible silhouette found so far along each pixel's chain."""
 

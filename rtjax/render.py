@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import math
 from typing import NamedTuple
 
 import jax
@@ -10,7 +11,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .camera import pixel_grid, rays_through, subpixel_offsets
-from .edges import Differentials
+from .edges import Differentials, edge_pixels
 from .errors import RtjaxError
 from .scene import Params, Scene, Structure
 from .spheres import coherent_order, culls
@@ -99,15 +100,22 @@ def default_tile() -> int:
 
 @functools.partial(jax.jit, static_argnames=("structure", "depth", "spp", "tile", "edges"))
 def _render(params: Params, structure: Structure, depth: int, spp: int, tile: int, edges: float = 0.0):
-    s, p = structure, params
+    return render_image(structure, params, depth, spp, tile, edges)
+
+
+def render_image(s: Structure, p: Params, depth: int, spp: int, tile: int, edges: float) -> Float[Array, "h w 3"]:
+    """`render`'s image, not compiled on its own (`rtjax.batch` maps it over frames)."""
 
     def sample(offset):
         xy = pixel_grid(s.width, s.height, offset)
+        step = jnp.asarray(1 / spp, offset.dtype)
+        if edges and s.width * s.height > EDGE_CHUNK_MIN:  # smaller: every pixel in one chunk
+            return image_edges(s, p, xy, step, depth, tile, edges, reach=math.ceil(edges / spp / 2))
         if not culls(s.n_spheres):
-            return colours_at(s, p, xy, jnp.asarray(1 / spp, offset.dtype), depth, tile, edges)
+            return colours_at(s, p, xy, step, depth, tile, edges)
         # large scenes cull spheres per group of consecutive rays: trace 8×8 blocks together
         order, inverse = coherent_order(s.width, s.height)
-        return colours_at(s, p, xy[:, order], jnp.asarray(1 / spp, offset.dtype), depth, tile, edges)[:, inverse]
+        return colours_at(s, p, xy[:, order], step, depth, tile, edges)[:, inverse]
 
     offsets = subpixel_offsets(spp, p.eye.dtype)
     if spp == 1:
@@ -118,11 +126,55 @@ def _render(params: Params, structure: Structure, depth: int, spp: int, tile: in
     return image.reshape(3, s.height, s.width).transpose(1, 2, 0)
 
 
-def colours_at(s: Structure, p: Params, xy, step, depth: int, tile: int, edges: float, parts: bool = False):
+#: The silhouette mode over a whole image (`image_edges`) traces the pixels near edges
+#: in chunks of a sixteenth of the image (at least `EDGE_CHUNK_MIN` pixels, at most
+#: `tile`); chunks past the last of them are skipped at run time. Pixels near edges
+#: are 9–16 % of the decks in scenes/ at a 1-pixel width: two or three chunks.
+EDGE_CHUNKS = 16
+EDGE_CHUNK_MIN = 4096
+
+
+def image_edges(s: Structure, p: Params, xy, step, depth: int, tile: int, edges: float, reach: int):
+    """The silhouette mode over an image's pixel lattice xy (2, H·W), row-major, at any
+    sub-pixel offset: clamped colours (3, H·W).
+
+    Edges cover a few per cent of an image, so the mode's cost is spent there: a plain
+    trace of every pixel also hashes each chain's hits and shadows into a key
+    (`trace.hit_key`); the pixels near a change of key (`edges.edge_pixels`, `reach`
+    samples around) are traced again in the silhouette mode (`colours_at`), in chunks
+    of which only those holding such pixels run (each checkpointed: its reverse mode
+    recomputes it rather than storing it); every other pixel keeps its plain colour,
+    which is its box-filtered one (no edge crosses its box), and so is its derivative.
+    """
+    n = xy.shape[1]
+    order, inverse = coherent_order(s.width, s.height) if culls(s.n_spheres) else (None, None)
+    first = xy if order is None else xy[:, order]
+    o, d = rays_through(p.eye, p.refp, p.vang, s.width, s.height, first)
+    colour, keys = tiled(lambda o, d: trace(s, p, o, d, depth, keyed=True), tile, o, d)
+    if order is not None:
+        colour, keys = colour[:, inverse], keys[inverse]
+    near = edge_pixels(keys.reshape(s.height, s.width), reach).reshape(n)
+    if order is not None:  # large scenes: traced again in 8×8 blocks
+        near = near[order]
+    (sel,) = jnp.nonzero(near, size=n, fill_value=0)
+    count = jnp.sum(near)
+    if order is not None:
+        sel = jnp.asarray(order)[sel]
+    chunk = min(tile, max(EDGE_CHUNK_MIN, -(-n // EDGE_CHUNKS)))
+    blended = colours_at(s, p, xy[:, sel], step, depth, chunk, edges, capacity=chunk, count=count)
+    # padding slots (pixel 0 repeated) write nowhere: pixel 0 may itself be near an edge
+    to = jnp.where(jnp.arange(n) < count, sel, n)
+    return jnp.clip(colour, 0, 255).at[:, to].set(blended, mode="drop")
+
+
+def colours_at(s: Structure, p: Params, xy, step, depth: int, tile: int, edges: float, parts: bool = False,
+               capacity: int | None = None, count=None):
     """Clamped colours (3, K) seen through image positions xy (2, K) (pixels of the
     scene's image). In the silhouette mode, `step` is the sample spacing in pixels: the
     box over which edges are filtered is `edges`·`step` pixels wide; `parts`: (14, K),
-    the centre colours and the edge blend's parts (`trace.trace_edges`)."""
+    the centre colours and the edge blend's parts (`trace.trace_edges`); `capacity`:
+    the edge pixels its pass 2 takes per `tile` (`trace.trace_edges`); `count`
+    (traced): only the first `count` positions are wanted (`trace.tiled`)."""
     if isinstance(edges, (int, float)) and edges == 0:
         o, d = rays_through(p.eye, p.refp, p.vang, s.width, s.height, xy)
         return jnp.clip(tiled(lambda o, d: trace(s, p, o, d, depth), tile, o, d), 0, 255)
@@ -137,9 +189,9 @@ def colours_at(s: Structure, p: Params, xy, step, depth: int, tile: int, edges: 
     still = jnp.zeros_like(d)  # all primary rays leave the eye
 
     def run(o, d, ox, dx, oy, dy):
-        return trace_edges(s, p, o, d, Differentials(ox, dx, oy, dy), depth, edges, parts)
+        return trace_edges(s, p, o, d, Differentials(ox, dx, oy, dy), depth, edges, parts, capacity)
 
-    return tiled(run, tile, o, d, still, dx, still, dy)
+    return tiled(run, tile, o, d, still, dx, still, dy, count=count)
 
 
 class EdgeSamples(NamedTuple):

@@ -61,19 +61,21 @@ def surface_colour(s: Structure, p: Params, m: Material, idx, normal_out) -> Flo
     return d
 
 
-def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, soft=None):
+def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, soft=None, keyed: bool = False):
     """Local light at each hit: Σ over lights of ambient, diffuse and specular with shadows.
 
     `soft` = (∂P/∂x, ∂P/∂y, width, sided): box-filter the nearest shadow edge
     (silhouette mode). `sided`: shadows sharp at the centre, and also the nearest
     shadow edge over the lights as an `edges.Flip` (see `edges.soft_shadow`); then
-    (colour, flip) is returned.
+    (colour, flip) is returned. `keyed` (hard shadows): (colour, each light's
+    visibility) is returned, for the rays' `Rays.key`.
     """
     total = jnp.zeros_like(n)
     sided = soft is not None and soft[-1]
     flip = edges.Flip.none(n[0]) if sided else None
+    visible = []
     if s.n_lights == 0:
-        return (total, flip) if sided else total
+        return (total, flip) if sided else (total, visible) if keyed else total
     idx = jnp.maximum(hit.index, 0)
     d = surface_colour(s, p, m, idx, hit.normal_out)
     ks, beta = m.ks[idx], m.beta[idx]
@@ -83,6 +85,7 @@ def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, soft
             ray = jnp.broadcast_to(light[:, None], n.shape)
             vis = spheres.transmission(hit.point, ray, p.centers, p.radii, hit.index, m.tmin, m.shadow_factor,
                                        active=hit.live, grid=m.grids[i] if m.grids else None)
+            visible.append(vis)
         elif sided:
             vis, there, x = edges.soft_shadow(hit, light, p.centers, p.radii, m.tmin, m.shadow_factor, *soft)
         else:
@@ -91,7 +94,26 @@ def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, soft
         if sided:
             flip = flip.nearer(edges.Flip(x, local_light(d, ks, beta, p.ke, nl, cos_g, there, colour) - term))
         total = total + term
-    return (total, flip) if sided else total
+    return (total, flip) if sided else (total, visible) if keyed else total
+
+
+#: FNV-1a's 32-bit prime, which mixes each hit into a ray's `Rays.key`.
+_FNV_PRIME = 16777619
+
+
+def _mix(key, value):
+    return (key ^ value.astype(jnp.uint32)) * jnp.uint32(_FNV_PRIME)
+
+
+def hit_key(key, hit: spheres.Hit, visibility, live):
+    """`key` with this hit folded in where `live`: the sphere met (or none) and each
+    light's visibility (quantised: which occluders block it). Two samples whose chains
+    have equal keys meet the same spheres in the same order under the same shadows, so
+    no silhouette or shadow edge lies between them (up to hash collisions)."""
+    new = _mix(key, hit.index + 1)
+    for vis in visibility:
+        new = _mix(new, jnp.round(jax.lax.stop_gradient(vis) * 2**20))
+    return jnp.where(live, new, key)
 
 
 def next_direction(s: Structure, p: Params, idx, d, n, entering):
@@ -118,12 +140,15 @@ class Rays(NamedTuple):
     colour: Float[Array, "3 p"]
     level: Int[Array, " p"]  # this segment's index in the chain (0: primary)
     flip: "edges.Flip | None" = None  # the nearest shadow edge so far (sided mode only)
+    key: "Int[Array, ' p'] | None" = None  # the chain's hits so far, hashed (`hit_key`; keyed traces only)
 
 
-def start_rays(o, d, sided: bool = False) -> Rays:
+def start_rays(o, d, sided: bool = False, keyed: bool = False) -> Rays:
     p = o.shape[1:]
     flip = edges.Flip.none(o[0]) if sided else None
-    return Rays(o, d, jnp.full(p, -1, jnp.int32), jnp.ones(p, o.dtype), jnp.zeros_like(o), jnp.zeros(p, jnp.int32), flip)
+    key = jnp.full(p, 2166136261, jnp.uint32) if keyed else None  # FNV-1a's offset basis
+    return Rays(o, d, jnp.full(p, -1, jnp.int32), jnp.ones(p, o.dtype), jnp.zeros_like(o), jnp.zeros(p, jnp.int32), flip,
+                key)
 
 
 def segment(
@@ -152,7 +177,12 @@ def segment(
     n = jnp.where(entering, hit.normal_out, -hit.normal_out)
     moves = None if diff is None else edges.hit_motion(hit, o, d, diff)
     soft = None if moves is None else (moves[0], moves[1], width, sided)
-    local = shade_hit(s, p, m, hit, n, -d, soft)
+    keyed = rays.key is not None
+    local = shade_hit(s, p, m, hit, n, -d, soft, keyed=keyed)
+    key = rays.key
+    if keyed:
+        local, visible = local
+        key = hit_key(key, hit, visible, rays.weight > 0)
     flip = rays.flip
     if soft is not None and sided:
         local, shadow = local
@@ -161,7 +191,7 @@ def segment(
             flip = flip.nearer(edges.Flip(jnp.where(seen, shadow.x, jnp.inf), rays.weight * shadow.delta))
     colour = rays.colour + rays.weight * jnp.where(hit.found, local, p.background[:, None])
     if not s.needs_secondary_rays:
-        return rays._replace(weight=jnp.zeros_like(rays.weight), colour=colour, flip=flip), None, hit
+        return rays._replace(weight=jnp.zeros_like(rays.weight), colour=colour, flip=flip, key=key), None, hit
     idx = jnp.maximum(hit.index, 0)
     alive = hit.found & jnp.asarray(s.mask(MIRROR, GLASS))[idx] & (rays.level < depth)
     glass = jnp.asarray(s.mask(GLASS))[idx]
@@ -181,15 +211,17 @@ def segment(
         sign = jnp.where(entering, 1, -1).astype(o.dtype) / sg(p.radii)[idx]
         outs = [jax.jvp(turn, (sg(d), sg(n)), (dd, sign * dp))[1] for dd, dp in ((diff.dx, moves[0]), (diff.dy, moves[1]))]
         new_diff = edges.Differentials(*sg((moves[0], outs[0], moves[1], outs[1])))
-    nxt = Rays(hit.point, new_d, hit.index, weight, colour, rays.level + 1, flip)
+    nxt = Rays(hit.point, new_d, hit.index, weight, colour, rays.level + 1, flip, key)
     return nxt, new_diff, hit
 
 
 #: Rays per tier of the chain: after each tier, the rays still alive are packed into the
 #: next, smaller one (see `_chain`). A tier is worth its extra compiled copy of the
-#: segment only on large ray counts; fits, which trace a few thousand rays, use one.
+#: segment only on large ray counts: a fit's coarse levels (a few thousand rays) use
+#: one; its full-size level (up to a quarter of the image) two: on the sample deck's
+#: example fit, 0.5 s a step instead of 1.1 s, for 3 s more compiling.
 TIER_DIVISOR = 8
-TIER_MIN = 4096
+TIER_MIN = 512
 
 
 def tiers(n: int) -> tuple[int, ...]:
@@ -254,14 +286,15 @@ def _chain(s, p, m, rays, depth, diff=None, width=0.0, toggles=None, watch=None,
     return rays, best
 
 
-def trace(s: Structure, p: Params, o: Float[Array, "3 p"], d: Float[Array, "3 p"], depth: int) -> Float[Array, "3 p"]:
+def trace(s: Structure, p: Params, o: Float[Array, "3 p"], d: Float[Array, "3 p"], depth: int, keyed: bool = False):
     """Colour seen along each ray (unclamped), following the chain for `depth` more segments.
 
     On most scenes most rays end after one or two segments, and a segment whose rays
-    have all ended is skipped at run time.
+    have all ended is skipped at run time. `keyed`: (colour, key), each ray's chain of
+    hits and shadows hashed (`hit_key`), for the silhouette mode's choice of pixels.
     """
-    rays, _ = _chain(s, p, prepare(s, p), start_rays(o, d), depth)
-    return rays.colour
+    rays, _ = _chain(s, p, prepare(s, p), start_rays(o, d, keyed=keyed), depth)
+    return (rays.colour, rays.key) if keyed else rays.colour
 
 
 def edge_capacity(n: int) -> int:
@@ -272,7 +305,7 @@ def edge_capacity(n: int) -> int:
 
 
 def trace_edges(s: Structure, p: Params, o, d, diff: "edges.Differentials", depth: int, width: float,
-                parts: bool = False) -> Float[Array, "3 p"] | Float[Array, "14 p"]:
+                parts: bool = False, capacity: int | None = None) -> Float[Array, "3 p"] | Float[Array, "14 p"]:
     """The silhouette-aware colour of each pixel, clamped.
 
     Pass 1 traces the chain with ray differentials and soft shadow edges, and finds the
@@ -290,13 +323,15 @@ def trace_edges(s: Structure, p: Params, o, d, diff: "edges.Differentials", dept
     the centre's colour had it lain on the other side of its nearest shadow edge over
     the chain (the centre's colour where none), and its distance to that edge in box
     widths (inf where none).
+
+    `capacity`: how many pixels pass 2 takes (default `edge_capacity`).
     """
     m = prepare(s, p)
     watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width)
     rays, best = _chain(s, p, m, start_rays(o, d, sided=parts), depth, diff, width, watch=watch, sided=parts)
     plain = jnp.clip(rays.colour, 0, 255)
     n = o.shape[1]
-    cap = edge_capacity(n)
+    cap = edge_capacity(n) if capacity is None else min(n, capacity)
     has = best.edge >= 0
     (sel,) = jnp.nonzero(has, size=cap, fill_value=0)
     valid = jnp.arange(cap) < jnp.sum(has)
@@ -322,18 +357,36 @@ def trace_edges(s: Structure, p: Params, o, d, diff: "edges.Differentials", dept
     return jnp.concatenate([rows, jnp.clip(rays.colour + rays.flip.delta, 0, 255), rays.flip.x[None]])
 
 
-def tiled(fn, tile: int, *arrays):
-    """fn(*arrays) → (R, P), run over tiles of `tile` rays one after another (`lax.map`)
-    when P > tile: bounds memory on large images (the image does not depend on it)."""
+def tiled(fn, tile: int, *arrays, count=None):
+    """fn(*arrays) → a pytree of (..., P) arrays, run over tiles of `tile` rays one after
+    another (`lax.map`) when P > tile: bounds memory on large images (the image does not
+    depend on it). `count` (traced): only the first `count` rays are wanted; tiles
+    wholly past them are skipped at run time (their outputs are zeros), and the others
+    are checkpointed (reverse mode recomputes a tile instead of storing its
+    intermediates: stored per tile they cost more than the recomputation)."""
     n = arrays[0].shape[-1]
     if n <= tile:
         return fn(*arrays)
-    count = -(-n // tile)
-    pad = count * tile - n
+    m = -(-n // tile)
+    pad = m * tile - n
 
-    def split(a):  # (..., P) → (count, ..., tile), padding with copies of the last ray
+    def split(a):  # (..., P) → (m, ..., tile), padding with copies of the last ray
         a = jnp.concatenate([a, jnp.repeat(a[..., -1:], pad, axis=-1)], axis=-1) if pad else a
-        return jnp.moveaxis(a.reshape(a.shape[:-1] + (count, tile)), -2, 0)
+        return jnp.moveaxis(a.reshape(a.shape[:-1] + (m, tile)), -2, 0)
 
-    out = jax.lax.map(lambda a: fn(*a), jax.tree_util.tree_map(split, arrays))
-    return jnp.moveaxis(out, 0, -2).reshape(out.shape[1], count * tile)[:, :n]
+    def join(a):  # (m, ..., tile) → (..., P)
+        return jnp.moveaxis(a, 0, -2).reshape(a.shape[1:-1] + (m * tile,))[..., :n]
+
+    parts = jax.tree_util.tree_map(split, arrays)
+    if count is None:
+        out = jax.lax.map(lambda a: fn(*a), parts)
+    else:
+        shapes = jax.eval_shape(fn, *(a[0] for a in parts))
+
+        def one(ia):
+            i, a = ia
+            return jax.lax.cond(i * tile < count, jax.checkpoint(lambda a: fn(*a)),
+                                lambda a: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes), a)
+
+        out = jax.lax.map(one, (jnp.arange(m), parts))
+    return jax.tree_util.tree_map(join, out)
