@@ -61,7 +61,9 @@ def render(
       mirror or through glass) and each hit's nearest shadow edge are box-filtered over
       `edges` pixels (1 = the pixel's own box), so the image is antialiased at edges and
       its derivative includes their motion (see `rtjax.edges`). 0 (default) renders
-      pixel centres.
+      pixel centres. On images of more than `EDGE_CHUNK_MIN` pixels the mode is spent
+      where edges are: every pixel is traced plainly first, and only those near a
+      change in what their chains meet are traced again in the mode (`image_edges`).
     tile: rays traced together (default: 2¹⁷ on a CPU, 2²⁰ on an accelerator); the
       image does not depend on it, only speed and memory do.
 

@@ -103,6 +103,19 @@ def test_a_parameter_sweep_is_one_batched_call():
     assert np.array_equal(np.asarray(rtjax.render_batch(scene.structure, params, mode="map")), images)
 
 
+def test_a_sweep_in_the_silhouette_mode_equals_render():
+    """Whole frames in the silhouette mode go through `render`'s own path (pixels near
+    edges chosen from the plain trace's keys, above 4096 pixels): bit for bit, in one
+    call mapped over the frames."""
+    scene = rtjax.parse_deck(SMALL + "rend a.ras\n").frames[0].scene.resized(96)
+    assert scene.structure.width * scene.structure.height > 4096
+    kes = np.array([0.1, 0.6], np.float32)
+    params = rtjax.stack_params([scene.replace(ke=k).params for k in kes])
+    images = np.asarray(rtjax.render_batch(scene.structure, params, edges=1.0, mode="map"))
+    for k, image in zip(kes, images):
+        assert np.array_equal(image, np.asarray(rtjax.render(scene.replace(ke=k), edges=1.0)))
+
+
 def test_batches_are_cut_to_bound_memory():
     s = rtjax.parse_deck(SMALL + "rend a.ras\n").frames[0].scene.structure
     assert [len(c) for c in batch.batch_chunks(s, 10, batch=4)] == [4, 4, 2]

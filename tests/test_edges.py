@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import importlib
 
 import jax
 import jax.numpy as jnp
@@ -39,6 +40,7 @@ import pytest
 
 import reference
 import rtjax
+from conftest import quick_xla
 from rtjax.camera import pixel_grid
 
 SPP = 32  # the yardstick: 32 × 32 samples per pixel
@@ -392,3 +394,94 @@ def test_parts_need_the_silhouette_mode():
     s = scene("single")
     with pytest.raises(rtjax.RtjaxError, match="edges"):
         rtjax.render_samples(s, _pixel_centres(s), parts=True)
+
+
+# --------------------------------------------------------------------------------------
+# (g) whole images: `render` spends the mode near edges only (`render.image_edges`)
+#
+# Above `EDGE_CHUNK_MIN` pixels, `render(edges=w)` traces every pixel plainly, hashing
+# each chain's hits and shadows into a key, and traces again in the mode only the
+# pixels whose neighbourhood of keys is not uniform. Below, every pixel is traced in the
+# mode (as in the sections above). These scenes at 96 × 96 pixels are above.
+
+BIG = 96
+render_module = importlib.import_module("rtjax.render")  # the package's `render` is the function
+
+
+def big(name: str) -> rtjax.Scene:
+    s = scene(name).resized(BIG)
+    assert s.structure.width * s.structure.height > render_module.EDGE_CHUNK_MIN
+    return s
+
+
+def test_edge_pixels_are_those_beside_a_change_of_key_and_the_border():
+    keys = np.full((12, 16), 7, np.uint32)
+    keys[:, 9:] = 8  # a vertical edge between columns 8 and 9
+    keys[5, 3] = 9  # a feature one pixel across
+    for reach in (1, 2):
+        expected = np.zeros(keys.shape, bool)
+        expected[:, 9 - reach:9 + reach] = True
+        expected[5 - reach:5 + reach + 1, 3 - reach:3 + reach + 1] = True
+        expected[:reach] = expected[-reach:] = True
+        expected[:, :reach] = expected[:, -reach:] = True
+        np.testing.assert_array_equal(np.asarray(rtjax.edges.edge_pixels(jnp.asarray(keys), reach)), expected)
+
+
+def test_every_pixel_an_outline_crosses_is_chosen():
+    """The single sphere at 96 × 96: the pixels whose box its outline crosses (some of
+    9 × 9 rays spread over the box meet the sphere and some miss it, by an independent
+    NumPy ray–sphere test) are all chosen, and few others are."""
+    s = big("single")
+    w, h = s.structure.width, s.structure.height
+    keys = rtjax.trace.trace(s.structure, s.params, *rtjax.camera.rays_through(
+        s.params.eye, s.params.refp, s.params.vang, w, h, jnp.asarray(_pixel_centres(s).T)), 0, keyed=True)[1]
+    near = np.asarray(rtjax.edges.edge_pixels(keys.reshape(h, w), 1))
+    u = (np.arange(9) + 0.5) / 9
+    sub = np.stack(np.meshgrid(u, u, indexing="xy"), -1).reshape(-1, 2)
+    corner = np.stack(np.meshgrid(np.arange(w), np.arange(h), indexing="xy"), -1).reshape(-1, 1, 2)
+    xy = (corner + sub).reshape(-1, 2)
+    o, d = (np.asarray(a) for a in rtjax.camera.rays_through(s.params.eye, s.params.refp, s.params.vang, w, h, jnp.asarray(xy.T)))
+    f = o - np.asarray(s.params.centers[0])[:, None]
+    b = np.sum(f * d, axis=0)
+    meets = (np.sum(f * f, axis=0) - b**2 < float(s.params.radii[0]) ** 2).reshape(h, w, -1)
+    crossed = meets.any(-1) & ~meets.all(-1)
+    assert crossed.sum() > 100
+    assert near[crossed].all()
+    inner = near[1:-1, 1:-1]  # the border is always chosen
+    assert inner.sum() < 4 * crossed.sum()  # the outline's neighbours, the terminator (measured 444 for 154)
+
+
+@pytest.mark.parametrize("name", ["single", "occlusion", "shadow", "mirror", "glass"])
+def test_whole_image_is_every_pixel_traced_in_the_mode(name):
+    """At 96 × 96 the chosen pixels hold every edge: the image equals the mode traced
+    at every pixel centre (`render_samples`), to rounding."""
+    s = big(name)
+    depth = DECKS[name][1]
+    whole = np.asarray(rtjax.render(s, depth=depth, edges=WIDTH)).reshape(-1, 3)
+    every = np.asarray(rtjax.render_samples(s, _pixel_centres(s), depth=depth, edges=WIDTH))
+    np.testing.assert_allclose(whole, every, rtol=0, atol=1e-9)
+    assert np.abs(whole - np.asarray(rtjax.render(s, depth=depth)).reshape(-1, 3)).max() > 20  # edges blended
+
+
+def test_whole_image_derivatives_are_every_pixel_traced_in_the_mode():
+    """The shadow scene at 96 × 96: the Jacobian of the image with respect to the
+    occluder's centre and radius (jacfwd) equals that of the mode traced at every pixel,
+    and reverse mode (the chosen pixels' chunks recomputed, `trace.tiled`) agrees."""
+    s = big("shadow")
+    xy = _pixel_centres(s)
+
+    def colours(v, whole):
+        p = _with(s.params, centers=s.params.centers.at[0].set(v[:3]), radii=s.params.radii.at[0].set(v[3]))
+        sc = rtjax.Scene(s.structure, p)
+        if whole:
+            return rtjax.render(sc, depth=0, edges=WIDTH).reshape(-1, 3)
+        return rtjax.render_samples(sc, xy, depth=0, edges=WIDTH)
+
+    v = jnp.concatenate([s.params.centers[0], s.params.radii[0][None]])
+    with quick_xla(clear=True):  # compile time; these are checks of agreement, not bits
+        whole = np.asarray(jax.jit(jax.jacfwd(lambda v: colours(v, True)))(v))
+        every = np.asarray(jax.jit(jax.jacfwd(lambda v: colours(v, False)))(v))
+        grad = np.asarray(jax.jit(jax.grad(lambda v: colours(v, True).mean()))(v))
+    assert np.abs(every).max() > 100
+    np.testing.assert_allclose(whole, every, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(grad, whole.reshape(-1, 4).mean(0), rtol=1e-9, atol=1e-12)

@@ -177,6 +177,36 @@ def test_tiles_do_not_change_the_image():
     np.testing.assert_allclose(whole, tiled, atol=1e-9)
 
 
+def test_tiles_past_the_count_are_skipped_and_the_others_differentiate_as_one():
+    """`trace.tiled(..., count=k)` (the silhouette mode's chunks of chosen pixels): tiles
+    holding rays before k run, later ones give zeros; values, jvp and vjp of the first
+    k rays are those of the untiled function (reverse mode through the checkpointed,
+    skipped tiles)."""
+    from rtjax.trace import tiled
+
+    def fn(a, b):  # per ray: (3, P) and (P,) outputs
+        return a * jnp.sin(b), jnp.sum(a * a, axis=0) + b
+
+    a = jnp.linspace(-1, 2, 30).reshape(3, 10)
+    b = jnp.linspace(0.3, 1.1, 10)
+    count = 5  # tiles of 4: rays 0–7 traced, 8–9 skipped
+    out = tiled(fn, 4, a, b, count=count)
+    ref = fn(a, b)
+    for o, r in zip(out, ref):
+        np.testing.assert_allclose(o[..., :8], r[..., :8], rtol=1e-12)
+        assert np.all(np.asarray(o[..., 8:]) == 0)
+    ta, tb = jnp.cos(a), jnp.sin(3 * b)
+    for o, r in zip(jax.jvp(lambda a, b: tiled(fn, 4, a, b, count=count), (a, b), (ta, tb))[1], jax.jvp(fn, (a, b), (ta, tb))[1]):
+        np.testing.assert_allclose(o[..., :count], r[..., :count], rtol=1e-12)
+
+    def first(f):
+        return lambda a, b: sum(jnp.sum(o[..., :count] ** 2) for o in f(a, b))
+
+    got = jax.grad(first(lambda a, b: tiled(fn, 4, a, b, count=count)), argnums=(0, 1))(a, b)
+    for g, r in zip(got, jax.grad(first(fn), argnums=(0, 1))(a, b)):
+        np.testing.assert_allclose(g, r, rtol=1e-12)
+
+
 def test_bad_render_options():
     s = scene_from_text("sphe 0 0 0 1\nopaq 1 1 1 0 1\n" + CAMERA)
     for kw in (dict(spp=0), dict(depth=-1), dict(dtype="int32"), dict(tile=0)):
