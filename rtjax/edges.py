@@ -225,10 +225,10 @@ def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, dpx, dpy,
     return hard * jnp.where(edge >= 0, soft, 1)
 
 
-def edge_pixels(keys: Int[Array, "h w"], reach: int) -> Bool[Array, "h w"]:
-    """Pixels whose samples' keys (`trace.hit_key`: the spheres each chain meets and the
-    shadows on them) are not all equal within `reach` samples across and down, and
-    the image's `reach`-wide border.
+def edge_pixels(keys: Int[Array, "h+2r w+2r"], reach: int) -> Bool[Array, "h w"]:
+    """Which samples of a lattice have keys (`trace.hit_key`: the spheres each chain
+    meets and the shadows on them) not all equal within `reach` samples across and
+    down. `keys` holds the lattice and a ring `reach` samples wide around it.
 
     A straight edge that crosses a pixel's box (of side ≤ 2·`reach` samples) separates
     its centre from the corner of its (2·`reach` + 1)² neighbourhood that lies beyond
@@ -236,10 +236,8 @@ def edge_pixels(keys: Int[Array, "h w"], reach: int) -> Bool[Array, "h w"]:
     outlines curving within it, and features narrower than the samples' spacing that
     fall between them): its plain colour is its box-filtered colour."""
     k = 2 * reach + 1
-    keys = keys | 1  # odd: unlike the zeros padded around the image
-    padded = jnp.pad(keys, reach, constant_values=0)
-    lo = jax.lax.reduce_window(padded, jnp.uint32(0xFFFFFFFF), jax.lax.min, (k, k), (1, 1), "VALID")
-    hi = jax.lax.reduce_window(padded, jnp.uint32(0), jax.lax.max, (k, k), (1, 1), "VALID")
+    lo = jax.lax.reduce_window(keys, jnp.uint32(0xFFFFFFFF), jax.lax.min, (k, k), (1, 1), "VALID")
+    hi = jax.lax.reduce_window(keys, jnp.uint32(0), jax.lax.max, (k, k), (1, 1), "VALID")
     return lo != hi
 
 

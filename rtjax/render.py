@@ -109,10 +109,10 @@ def render_image(s: Structure, p: Params, depth: int, spp: int, tile: int, edges
     """`render`'s image, not compiled on its own (`rtjax.batch` maps it over frames)."""
 
     def sample(offset):
-        xy = pixel_grid(s.width, s.height, offset)
         step = jnp.asarray(1 / spp, offset.dtype)
         if edges and s.width * s.height > EDGE_CHUNK_MIN:  # smaller: every pixel in one chunk
-            return image_edges(s, p, xy, step, depth, tile, edges, reach=math.ceil(edges / spp / 2))
+            return image_edges(s, p, offset, step, depth, tile, edges, reach=math.ceil(edges / spp / 2))
+        xy = pixel_grid(s.width, s.height, offset)
         if not culls(s.n_spheres):
             return colours_at(s, p, xy, step, depth, tile, edges)
         # large scenes cull spheres per group of consecutive rays: trace 8×8 blocks together
@@ -136,31 +136,36 @@ EDGE_CHUNKS = 16
 EDGE_CHUNK_MIN = 4096
 
 
-def image_edges(s: Structure, p: Params, xy, step, depth: int, tile: int, edges: float, reach: int):
-    """The silhouette mode over an image's pixel lattice xy (2, H·W), row-major, at any
-    sub-pixel offset: clamped colours (3, H·W).
+def image_edges(s: Structure, p: Params, offset, step, depth: int, tile: int, edges: float, reach: int):
+    """The silhouette mode over the image's pixels at sub-pixel `offset`: clamped
+    colours (3, H·W), row-major.
 
     Edges cover a few per cent of an image, so the mode's cost is spent there: a plain
-    trace of every pixel also hashes each chain's hits and shadows into a key
-    (`trace.hit_key`); the pixels near a change of key (`edges.edge_pixels`, `reach`
-    samples around) are traced again in the silhouette mode (`colours_at`), in chunks
-    of which only those holding such pixels run (each checkpointed: its reverse mode
-    recomputes it rather than storing it); every other pixel keeps its plain colour,
-    which is its box-filtered one (no edge crosses its box), and so is its derivative.
+    trace of every pixel (and of a ring `reach` pixels wide around the image) also
+    hashes each chain's hits and shadows into a key (`trace.hit_key`); the pixels near
+    a change of key (`edges.edge_pixels`) are traced again in the silhouette mode
+    (`colours_at`), in chunks of which only those holding such pixels run (each
+    checkpointed: its reverse mode recomputes it rather than storing it); every other
+    pixel keeps its plain colour, which is its box-filtered one (no edge crosses its
+    box), and so is its derivative. Under `jax.vmap` every chunk runs.
     """
-    n = xy.shape[1]
-    order, inverse = coherent_order(s.width, s.height) if culls(s.n_spheres) else (None, None)
-    first = xy if order is None else xy[:, order]
-    o, d = rays_through(p.eye, p.refp, p.vang, s.width, s.height, first)
+    w, h, n = s.width + 2 * reach, s.height + 2 * reach, s.width * s.height
+    ring = pixel_grid(w, h, offset - reach)  # the image's pixels and the ring around them
+    order, inverse = coherent_order(w, h) if culls(s.n_spheres) else (None, None)
+    o, d = rays_through(p.eye, p.refp, p.vang, s.width, s.height, ring if order is None else ring[:, order])
     colour, keys = tiled(lambda o, d: trace(s, p, o, d, depth, keyed=True), tile, o, d)
     if order is not None:
         colour, keys = colour[:, inverse], keys[inverse]
-    near = edge_pixels(keys.reshape(s.height, s.width), reach).reshape(n)
-    if order is not None:  # large scenes: traced again in 8×8 blocks
+    inner = (slice(None), slice(reach, h - reach), slice(reach, w - reach))
+    colour = colour.reshape(3, h, w)[inner].reshape(3, n)
+    near = edge_pixels(keys.reshape(h, w), reach).reshape(n)
+    xy = pixel_grid(s.width, s.height, offset)
+    if culls(s.n_spheres):  # traced again in 8×8 blocks
+        order = coherent_order(s.width, s.height)[0]
         near = near[order]
     (sel,) = jnp.nonzero(near, size=n, fill_value=0)
     count = jnp.sum(near)
-    if order is not None:
+    if culls(s.n_spheres):
         sel = jnp.asarray(order)[sel]
     chunk = min(tile, max(EDGE_CHUNK_MIN, -(-n // EDGE_CHUNKS)))
     blended = colours_at(s, p, xy[:, sel], step, depth, chunk, edges, capacity=chunk, count=count)
