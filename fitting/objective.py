@@ -34,6 +34,17 @@ LOSSES = ("l2", "huber", "cauchy")
 #: 4 of 6 within 0.01 against 2). Not with a fitted blur (a photo: noise and JPEG make
 #: outliers at every level; measured 0.100 against 0.091 units on the photo-like deck).
 COARSE_SCALE = 3.0
+#: Levels matched at pixel centres (`Samples.exact`) narrow the robust loss's scale by
+#: this factor (1 level for the default 10): at the truth their residuals are the
+#: target's rounding alone (≤ ½ level), while the few samples the sided model cannot
+#: match (a silhouette and a shadow edge within a few hundredths of a pixel of the
+#: centre: the colour traced across one lies across the other) jump by tens of levels
+#: as an edge crosses their centre; at the default scale one such sample outweighed
+#: thousands and held the solver in a trap ~0.01 units off. Measured on the sample
+#: deck, six starts each: ±1 6/6 within 0.01, ±3 6/6 (largest errors 0.0009–0.0014;
+#: 0.0020–0.0107 at the default scale), ±5 4/6 (0.0012–0.0016, then 0.0101 and a
+#: start outside the basin).
+EXACT_SCALE = 0.1
 #: With a fitted blur (a photo-like target), edges are found on the target blurred by
 #: this many pixels (`make_levels`' `denoise`): on the photo-like sample deck (README)
 #: 41 % of the pixels looked like edge pixels, 25 % blurred; largest centre error 0.091
@@ -322,6 +333,8 @@ class Objective:
         scale = self.loss_scale
         if not samples.exact and "blur" not in y.get("nuisance", {}):
             scale = scale * jnp.where(samples.step > 1, COARSE_SCALE, 1.0)  # a level coarser than the image
+        if samples.exact and "blur" not in y.get("nuisance", {}):  # matched at pixel centres
+            scale = scale * EXACT_SCALE
         return robust(r, self.loss, scale / 255).astype(dtype)
 
 

@@ -9,7 +9,7 @@ import numpy as np
 from conftest import scene_from_text
 
 import rtjax
-from fitting.objective import COARSE_SCALE, Objective, apply_nuisance, edge_band, make_levels, robust, schedule_widths, smooth
+from fitting.objective import COARSE_SCALE, EXACT_SCALE, Objective, apply_nuisance, edge_band, make_levels, robust, schedule_widths, smooth
 from fitting.select import Selection
 from fitting.solve import prepare_fit
 
@@ -196,23 +196,25 @@ def test_default_schedule_an_eighth_a_quarter_and_full_size():
     assert schedule_widths(400, [50, 100, 900]) == [50, 100, 400]
 
 
-def test_coarse_levels_widen_the_robust_scale():
-    """Levels coarser than the image use a Cauchy scale COARSE_SCALE times wider; the
-    full-size levels, and every level of a fit with a blur, the given one."""
+def test_levels_scale_the_robust_loss():
+    """Levels coarser than the image use a Cauchy scale COARSE_SCALE times wider, a level
+    matched at pixel centres one EXACT_SCALE times narrower; a full-size box-filtered
+    level, and every level of a fit with a blur, the given one."""
     scene = scene_from_text(DECK).astype(jnp.float64)
     target = np.asarray(rtjax.render(scene.replace(centers=scene.params.centers + 0.3)))
     weight = np.ones(target.shape[:2] + (1,))
-    coarse, full = make_levels(target, weight, [12, 24], [1.0, 1.0], jnp.float64)
+    coarse, full, exact = make_levels(target, weight, [12, 24, 24], [1.0, 1.0, 1.0], jnp.float64, exact=[False, False, True])
     selection = Selection(scene, "centers", None)
     objective = Objective(selection, None, "cauchy", 10.0)
     y = {"scene": selection.y0()}
-    for level, scale in ((coarse, 10.0 * COARSE_SCALE), (full, 10.0)):
+    for level, scale in ((coarse, 10.0 * COARSE_SCALE), (full, 10.0), (exact, 10.0 * EXACT_SCALE)):
         r = (objective.model(y, level) - level.target) * level.weight / 255
         assert np.abs(np.asarray(r)).max() * 255 > 20  # residuals where the scale matters
         np.testing.assert_allclose(np.asarray(objective.residuals(y, level)), np.asarray(robust(r, "cauchy", scale / 255)), rtol=1e-12)
     blurred = {**y, "nuisance": {"blur": jnp.asarray(np.log(0.3))}}
-    r = (objective.model(blurred, coarse) - coarse.target) * coarse.weight / 255
-    np.testing.assert_allclose(np.asarray(objective.residuals(blurred, coarse)), np.asarray(robust(r, "cauchy", 10.0 / 255)), rtol=1e-12)
+    for level in (coarse, exact):
+        r = (objective.model(blurred, level) - level.target) * level.weight / 255
+        np.testing.assert_allclose(np.asarray(objective.residuals(blurred, level)), np.asarray(robust(r, "cauchy", 10.0 / 255)), rtol=1e-12)
 
 
 def test_smooth_is_a_normalised_gaussian():
