@@ -33,7 +33,7 @@ import rtjax
 
 from .errors import FitError
 from .objective import LOSSES
-from .solve import SOLVERS, FitResult, _message, _result_name, _Stepper, prepare_fit
+from .solve import SOLVERS, FitResult, _message, _result_name, _Stepper, level_budget, prepare_fit
 
 AXIS = "starts"
 
@@ -277,10 +277,13 @@ def fit_multistart(
     best_loss = np.full(padded, math.inf)
     steps = 0
     for level, (width, samples) in enumerate(zip(widths, pyramid)):
-        final = level == len(widths) - 1
+        budget, final, until = level_budget(pyramid, level, max_steps, steps, loss_scale)
+        if budget < 1:  # no steps left for this level (the refinement, or any level after max_steps=1)
+            results[real & (results == _code(optx.RESULTS.successful))] = _code(optx.RESULTS.max_steps_reached)
+            break
+        if (best_loss[real] <= until).all():  # every start came as close: straight to the refinement
+            continue
         coarse = not final
-        share = 2 if level == 0 else len(widths) - level
-        budget = max_steps - steps if final else max(1, (max_steps - steps) // share)
         states = run.init(ys, samples)
         best_y = ys
         best_loss = _host(run.loss(ys, samples)).astype(np.float64)
@@ -308,6 +311,9 @@ def fit_multistart(
                 best_loss = np.where(better, loss_now, best_loss)
             finished = ok & done_now
             results[finished] = result_now[finished]
+            close = ok & ~finished & (best_loss <= until)  # handed to the narrow-scale refinement
+            results[close] = _code(optx.RESULTS.successful)
+            finished |= close
             stop = diverged | finished
             if coarse:
                 stop |= ok & (stalled >= 2)

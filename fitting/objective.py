@@ -34,17 +34,23 @@ LOSSES = ("l2", "huber", "cauchy")
 #: 4 of 6 within 0.01 against 2). Not with a fitted blur (a photo: noise and JPEG make
 #: outliers at every level; measured 0.100 against 0.091 units on the photo-like deck).
 COARSE_SCALE = 3.0
-#: Levels matched at pixel centres (`Samples.exact`) narrow the robust loss's scale by
-#: this factor (1 level for the default 10): at the truth their residuals are the
-#: target's rounding alone (≤ ½ level), while the few samples the sided model cannot
-#: match (a silhouette and a shadow edge within a few hundredths of a pixel of the
-#: centre: the colour traced across one lies across the other) jump by tens of levels
-#: as an edge crosses their centre; at the default scale one such sample outweighed
-#: thousands and held the solver in a trap ~0.01 units off. Measured on the sample
-#: deck, six starts each: ±1 6/6 within 0.01, ±3 6/6 (largest errors 0.0009–0.0014;
-#: 0.0020–0.0107 at the default scale), ±5 4/6 (0.0012–0.0016, then 0.0101 and a
-#: start outside the basin).
+#: A fit matched at pixel centres ends with a second full-size level on the same
+#: samples whose robust scale is this factor of the fit's (1 level for the default
+#: 10), from where the first stopped (`fitting.solve.prepare_fit`). At the truth such a
+#: level's residuals are the target's rounding alone (≤ ½ level), while the few
+#: samples the sided model cannot match (a silhouette and a shadow edge within
+#: hundredths of a pixel of the centre: the colour traced across one lies across the
+#: other) jump by tens of levels as an edge crosses their centre: at the fit's scale
+#: one such sample outweighs thousands and can hold the solver ~0.01 units off. The
+#: wide scale first, because far from the truth residuals of tens of levels are signal.
 EXACT_SCALE = 0.1
+#: ...once the wider level's RMS residual is below this fraction of the fit's scale (3
+#: levels for the default 10), or it converged; straight away where the level before
+#: ended that close (`fitting.solve.level_budget`). Switched only at convergence, one
+#: of six ±3-unit starts on the sample deck ran out of steps 0.032 units off; the
+#: narrow scale throughout moved colours that start far off too slowly (notebook 02's
+#: quick fit: 0.30 off in 8 steps).
+NARROW_BELOW = 0.3
 #: With a fitted blur (a photo-like target), edges are found on the target blurred by
 #: this many pixels (`make_levels`' `denoise`): on the photo-like sample deck (README)
 #: 41 % of the pixels looked like edge pixels, 25 % blurred; largest centre error 0.091
@@ -172,6 +178,7 @@ class Samples(NamedTuple):
     weight: jnp.ndarray  # (K, 1)
     width: jnp.ndarray  # () edge width in this level's pixels
     exact: bool  # matched at pixel centres (see `Objective.model`)
+    scale: jnp.ndarray = 1.0  # () the robust loss's scale, as a factor of the fit's (`EXACT_SCALE`)
 
 
 def level_grid(width: int, height: int, w: int) -> tuple[int, np.ndarray, float]:
@@ -257,7 +264,8 @@ def make_levels(target: np.ndarray, weight: np.ndarray, widths: Sequence[int], e
         else:
             rest = np.setdiff1d(np.arange(len(xy)), band)
             pick = np.concatenate([rng.choice(band, take, replace=False), rng.choice(rest, size - take, replace=False)])
-        levels.append(Samples(*(jnp.asarray(a, dtype) for a in (xy[pick], step, t[pick], wt[pick], e)), bool(x)))
+        levels.append(Samples(*(jnp.asarray(a, dtype) for a in (xy[pick], step, t[pick], wt[pick], e)), bool(x),
+                              jnp.asarray(1.0, dtype)))
     return levels
 
 
@@ -330,11 +338,9 @@ class Objective:
         r = (self.model(y, samples) - samples.target) * samples.weight / 255
         # in the solver's float type (see Selection.y0), whatever the render's precision
         dtype = jax.tree_util.tree_leaves(y)[0].dtype
-        scale = self.loss_scale
+        scale = self.loss_scale * samples.scale
         if not samples.exact and "blur" not in y.get("nuisance", {}):
             scale = scale * jnp.where(samples.step > 1, COARSE_SCALE, 1.0)  # a level coarser than the image
-        if samples.exact and "blur" not in y.get("nuisance", {}):  # matched at pixel centres
-            scale = scale * EXACT_SCALE
         return robust(r, self.loss, scale / 255).astype(dtype)
 
 

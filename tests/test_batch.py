@@ -107,7 +107,7 @@ def test_a_sweep_in_the_silhouette_mode_equals_render():
     """Whole frames in the silhouette mode go through `render`'s own path (pixels near
     edges chosen from the plain trace's keys, above 4096 pixels): bit for bit, in one
     call mapped over the frames."""
-    scene = rtjax.parse_deck(SMALL + "rend a.ras\n").frames[0].scene.resized(96)
+    scene = rtjax.parse_deck(SMALL + "rend a.ras\n").frames[0].scene.resized(80)
     assert scene.structure.width * scene.structure.height > 4096
     kes = np.array([0.1, 0.6], np.float32)
     params = rtjax.stack_params([scene.replace(ke=k).params for k in kes])

@@ -104,9 +104,8 @@ def test_a_solve_that_cannot_converge_reports_so(truth, target):
 @pytest.mark.parametrize("solver", ["gn", "dogleg", "bfgs"])
 def test_other_solvers_reduce_the_loss(truth, target, solver):
     start = truth.replace(ke=0.4, diffuse=np.asarray(truth.params.diffuse) * 0.8)
-    # 4 box-filtered steps, then 4 at pixel centres, whose narrow robust scale
-    # (objective.EXACT_SCALE) moves colours that are still far off slowly (6 steps were
-    # enough at the wide scale)
+    # 4 box-filtered steps, then 4 at pixel centres, which hand over to the narrow robust
+    # scale (objective.EXACT_SCALE) within 3 levels RMS, where colours still move slowly
     res = fitting.fit(start, target, "colors,ke", solver=solver, max_steps=8)
     assert res.history[-1]["best_loss"] < 0.2 * res.history[0]["loss"]
     assert abs(float(res.scene.params.ke) - 0.25) < 0.05

@@ -145,7 +145,10 @@ def test_the_full_size_level_is_exact_by_default_and_takes_every_edge_pixel():
     target = np.asarray(rtjax.render(scene))
     args = (target, "centers", None, None, [24, 48], None, 1.0, "cauchy", 10.0, None, (), None, False)
     pyramid = prepare_fit(scene, *args)[5]
-    assert [s.exact for s in pyramid] == [False, True]
+    # the exact level, then its narrow-scale refinement on the same samples
+    assert [s.exact for s in pyramid] == [False, True, True]
+    assert [float(s.scale) for s in pyramid] == [1.0, 1.0, np.float32(EXACT_SCALE)]
+    np.testing.assert_array_equal(np.asarray(pyramid[-1].xy), np.asarray(pyramid[-2].xy))
     band = np.flatnonzero(edge_band(target).ravel())
     w = scene.structure.width
     xy = np.asarray(pyramid[-1].xy)
@@ -197,9 +200,9 @@ def test_default_schedule_an_eighth_a_quarter_and_full_size():
 
 
 def test_levels_scale_the_robust_loss():
-    """Levels coarser than the image use a Cauchy scale COARSE_SCALE times wider, a level
-    matched at pixel centres one EXACT_SCALE times narrower; a full-size box-filtered
-    level, and every level of a fit with a blur, the given one."""
+    """Levels coarser than the image use a Cauchy scale COARSE_SCALE times wider, the
+    refinement of a level matched at pixel centres one EXACT_SCALE times narrower; a
+    full-size level, and every level of a fit with a blur, the given one."""
     scene = scene_from_text(DECK).astype(jnp.float64)
     target = np.asarray(rtjax.render(scene.replace(centers=scene.params.centers + 0.3)))
     weight = np.ones(target.shape[:2] + (1,))
@@ -207,7 +210,8 @@ def test_levels_scale_the_robust_loss():
     selection = Selection(scene, "centers", None)
     objective = Objective(selection, None, "cauchy", 10.0)
     y = {"scene": selection.y0()}
-    for level, scale in ((coarse, 10.0 * COARSE_SCALE), (full, 10.0), (exact, 10.0 * EXACT_SCALE)):
+    refined = exact._replace(scale=jnp.asarray(EXACT_SCALE))
+    for level, scale in ((coarse, 10.0 * COARSE_SCALE), (full, 10.0), (exact, 10.0), (refined, 10.0 * EXACT_SCALE)):
         r = (objective.model(y, level) - level.target) * level.weight / 255
         assert np.abs(np.asarray(r)).max() * 255 > 20  # residuals where the scale matters
         np.testing.assert_allclose(np.asarray(objective.residuals(y, level)), np.asarray(robust(r, "cauchy", scale / 255)), rtol=1e-12)
