@@ -44,9 +44,17 @@ LM_STEP0 = 10.0
 LM_GROW_ABOVE = 0.75
 
 
+class _TrustRegion(optx.ClassicalTrustRegion):
+    """optimistix's classical trust region, starting at `LM_STEP0` on every level."""
+
+    def init(self, y, f_info_struct):
+        state = super().init(y, f_info_struct)
+        return eqx.tree_at(lambda s: s.step_size, state, jnp.asarray(LM_STEP0, state.step_size.dtype))
+
+
 def _levenberg_marquardt(rtol: float, atol: float) -> optx.LevenbergMarquardt:
     lm = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    return eqx.tree_at(lambda s: s.search, lm, optx.ClassicalTrustRegion(high_cutoff=LM_GROW_ABOVE))
+    return eqx.tree_at(lambda s: s.search, lm, _TrustRegion(high_cutoff=LM_GROW_ABOVE))
 
 
 SOLVERS = {
@@ -321,11 +329,7 @@ class _Stepper:
 
     def _init(self, y, args):
         f_struct, aux_struct = jax.eval_shape(lambda: self.fn(y, args))
-        state = self.solver.init(self.fn, y, args, self.options, f_struct, aux_struct, frozenset())
-        if isinstance(self.solver, optx.LevenbergMarquardt):  # its first step size: see LM_STEP0
-            size = state.search_state.step_size
-            state = eqx.tree_at(lambda s: s.search_state.step_size, state, jnp.asarray(LM_STEP0, size.dtype))
-        return state
+        return self.solver.init(self.fn, y, args, self.options, f_struct, aux_struct, frozenset())
 
     def _step(self, y, state, args):
         y, state, _ = self.solver.step(self.fn, y, args, self.options, state, frozenset())
