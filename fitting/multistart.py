@@ -33,21 +33,9 @@ import rtjax
 
 from .errors import FitError
 from .objective import LOSSES
-from .solve import SOLVERS, FitResult, _message, _result_name, _Stepper, level_budget, prepare_fit
+from .solve import SOLVERS, FitResult, LevelBook, _code, _item, _message, _result_name, _Stepper, prepare_fit, run_levels
 
 AXIS = "starts"
-
-
-def _code(item) -> int:
-    return int(item._value)
-
-
-def _item(code: int):
-    """optimistix's result item for its integer code."""
-    for item in optx.RESULTS._name_to_item.values():
-        if _code(item) == int(code):
-            return item
-    return optx.RESULTS.nonlinear_divergence
 
 
 @dataclasses.dataclass
@@ -97,7 +85,7 @@ def perturbed_starts(y0: dict, starts: int, spread: float, seed: int) -> dict:
 
 
 class _Parallel:
-    """`_Stepper`'s init/step/loss over a leading axis of starts, in one compiled call:
+    """`_Stepper`'s init/step over a leading axis of starts, in one compiled call:
     `lax.map` (mode "map": one start after another, each keeping the renderer's
     run-time skipping of finished ray segments) or `vmap` (mode "vmap": all at once);
     with a mesh, vmapped with the starts axis laid out over the devices."""
@@ -106,7 +94,6 @@ class _Parallel:
         self.stepper, self.mesh, self.mode = stepper, mesh, mode
         self.init = eqx.filter_jit(self._init)
         self.step = eqx.filter_jit(self._step)
-        self.loss = eqx.filter_jit(self._loss)
         self.keep = eqx.filter_jit(_select)
 
     def _over_starts(self, fn, batched, shared):
@@ -164,9 +151,6 @@ class _Parallel:
             return y2, state2, done, code, loss
 
         return self._over_starts(one, (ys, states, active), (samples,))
-
-    def _loss(self, ys, samples):
-        return self._over_starts(lambda y, args: self.stepper.loss(y, args), (ys,), (samples,))
 
 
 def _host(a) -> np.ndarray:
@@ -272,79 +256,48 @@ def fit_multistart(
     y_first = jax.tree.map(lambda a: a, ys)
 
     histories: list[list[dict]] = [[] for _ in range(starts)]
-    results = np.full(padded, _code(optx.RESULTS.successful), np.int32)
-    levelled = np.zeros(padded, bool)
-    best_loss = np.full(padded, math.inf)
-    steps = 0
-    for level, (width, samples) in enumerate(zip(widths, pyramid)):
-        budget, final, until = level_budget(pyramid, level, max_steps, steps, loss_scale)
-        if budget < 1:  # no steps left for this level (the refinement, or any level after max_steps=1)
-            results[real & (results == _code(optx.RESULTS.successful))] = _code(optx.RESULTS.max_steps_reached)
-            break
-        if (best_loss[real] <= until).all():  # every start came as close: straight to the refinement
-            continue
-        coarse = not final
+    book = LevelBook(padded, False, 0.0, active=real)  # the last level's (none yet)
+    state = {"ys": ys}
+
+    def level(samples, width, budget, full_size, until, steps):
+        nonlocal book
+        ys = state["ys"]
         states = run.init(ys, samples)
         best_y = ys
-        best_loss = _host(run.loss(ys, samples)).astype(np.float64)
-        stopped = ~real.copy()
-        done = np.zeros(padded, bool)
-        stalled = np.zeros(padded, int)
-        levelled[:] = False
-        results[real] = _code(optx.RESULTS.successful)
+        book = LevelBook(padded, not full_size, until, active=real)
         n = 0
         for n in range(1, budget + 1):
             t0 = time.perf_counter()
-            active = ~stopped
-            ys, states, done_now, result_now, loss_now = run.step(ys, states, samples, jnp.asarray(active))
+            ys, states, done_now, result_now, loss_now = run.step(ys, states, samples, jnp.asarray(~book.stopped))
             loss_now = _host(loss_now).astype(np.float64)
-            done_now, result_now = _host(done_now).astype(bool), _host(result_now).astype(np.int32)
+            active, better = book.update(loss_now, _host(done_now), _host(result_now))
             seconds = time.perf_counter() - t0
-            finite = np.isfinite(loss_now)
-            diverged = active & ~finite
-            results[diverged] = _code(optx.RESULTS.nonlinear_divergence)
-            ok = active & finite
-            stalled = np.where(ok, np.where(loss_now > best_loss * 0.99, stalled + 1, 0), stalled)
-            better = ok & (loss_now < best_loss)
             if better.any():
                 best_y = run.keep(jnp.asarray(better), ys, best_y)
-                best_loss = np.where(better, loss_now, best_loss)
-            finished = ok & done_now
-            results[finished] = result_now[finished]
-            close = ok & ~finished & (best_loss <= until)  # handed to the narrow-scale refinement
-            results[close] = _code(optx.RESULTS.successful)
-            finished |= close
-            stop = diverged | finished
-            if coarse:
-                stop |= ok & (stalled >= 2)
-            else:
-                flat = ok & ~finished & (stalled >= 4)
-                levelled |= flat
-                results[flat] = _code(optx.RESULTS.successful)
-                stop |= flat
-            done |= diverged | finished | (levelled & ok)
-            stopped |= stop
             elapsed = time.perf_counter() - t_start
             for k in np.flatnonzero(active[:starts]):
                 histories[k].append({
-                    "step": steps + n, "width": width, "loss": float(loss_now[k]), "best_loss": float(best_loss[k]),
-                    "rmse_levels": math.sqrt(2 * best_loss[k]) * 255 if math.isfinite(best_loss[k]) else math.nan,
+                    "step": steps + n, "width": width, "loss": float(loss_now[k]), "best_loss": float(book.best[k]),
+                    "rmse_levels": math.sqrt(2 * book.best[k]) * 255 if math.isfinite(book.best[k]) else math.nan,
                     "seconds": seconds, "elapsed": elapsed,
                 })
             if callback is not None:
-                lead = int(np.argmin(np.where(real, best_loss, math.inf)))
+                lead = int(np.argmin(np.where(real, book.best, math.inf)))
                 row = dict(histories[lead][-1]) if histories[lead] and histories[lead][-1]["step"] == steps + n else {
-                    "step": steps + n, "width": width, "loss": float(loss_now[lead]), "best_loss": float(best_loss[lead]),
-                    "rmse_levels": math.sqrt(2 * best_loss[lead]) * 255, "seconds": seconds, "elapsed": elapsed}
-                row.update(start=lead, active=int((~stopped[:starts]).sum()))
+                    "step": steps + n, "width": width, "loss": float(loss_now[lead]), "best_loss": float(book.best[lead]),
+                    "rmse_levels": math.sqrt(2 * book.best[lead]) * 255, "seconds": seconds, "elapsed": elapsed}
+                row.update(start=lead, active=int((~book.stopped[:starts]).sum()))
                 callback(row)
-            if stopped.all():
+            if book.stopped.all():
                 break
-        if final:
-            unfinished = real & ~done
-            results[unfinished] = _code(optx.RESULTS.max_steps_reached)
-        steps += n
-        ys = best_y
+        book.finish()
+        state["ys"] = best_y
+        return n
+
+    steps, out_of_steps = run_levels(pyramid, widths, max_steps, loss_scale, lambda: book.best[real], level)
+    ys, results, best_loss, levelled = state["ys"], book.results, book.best, book.levelled
+    if out_of_steps:
+        results[real & (results == _code(optx.RESULTS.successful))] = _code(optx.RESULTS.max_steps_reached)
 
     names = [_result_name(_item(r)) for r in results[:starts]]
     losses = [float(x) for x in best_loss[:starts]]

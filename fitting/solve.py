@@ -106,6 +106,19 @@ def _message(result) -> str:
         return _result_name(result)
 
 
+def _code(item) -> int:
+    """optimistix's result item as its integer code (what a compiled step returns)."""
+    return int(item._value) if hasattr(item, "_value") else int(item)
+
+
+def _item(code: int):
+    """optimistix's result item for its integer code."""
+    for item in optx.RESULTS._name_to_item.values():
+        if _code(item) == int(code):
+            return item
+    return optx.RESULTS.nonlinear_divergence
+
+
 def level_budget(pyramid, level: int, max_steps: int, steps: int, loss_scale: float) -> tuple[int, bool, float]:
     """Iterations for pyramid level `level` after `steps` of `max_steps`; whether it is a
     full-size level (else a coarse one, which stops early once it stalls); and a loss
@@ -126,6 +139,76 @@ def level_budget(pyramid, level: int, max_steps: int, steps: int, loss_scale: fl
         return max_steps - steps, True, 0.5 * (NARROW_BELOW * loss_scale / 255) ** 2 if refined else 0.0
     share = 2 if level == 0 else main - level
     return max(1, (max_steps - steps) // share), False, 0.0
+
+
+def run_levels(pyramid, widths, max_steps: int, loss_scale: float, best_losses: Callable[[], np.ndarray],
+               level: Callable[..., int]) -> tuple[int, bool]:
+    """The coarse-to-fine schedule `fit` and `fit_multistart` share: each level in turn
+    with its `level_budget`, skipped where every start's best loss so far
+    (`best_losses()`) is already at its hand-over loss. `level(samples, width, budget,
+    full_size, until, steps)` runs one level and returns its iterations. Returns the
+    iterations in all and whether they ran out before the last level."""
+    steps = 0
+    for index, (width, samples) in enumerate(zip(widths, pyramid)):
+        budget, full_size, until = level_budget(pyramid, index, max_steps, steps, loss_scale)
+        if budget < 1:  # no steps left for this level (the refinement, or any level after max_steps=1)
+            return steps, True
+        if np.all(best_losses() <= until):  # the level before came as close: straight to the refinement
+            continue
+        steps += level(samples, width, budget, full_size, until, steps)
+    return steps, False
+
+
+class LevelBook:
+    """One level's bookkeeping for K starts at once (NumPy arrays; `fit` has one): the
+    best loss so far, iterations without a 1 % decrease, the result, and the rules that
+    stop a start. A coarse level stops a start once its best loss improves by less than
+    1 % over two iterations (its optimum is only near the full-size one); a full-size
+    one after four such iterations (steps are rejected or negligible: the loss has
+    levelled off, a success). Any start stops once its best loss is at most `until`
+    (a refinement takes over: a success), or when the solver says it is done, or when
+    its loss is not finite (divergence; its best point is kept)."""
+
+    def __init__(self, starts: int, coarse: bool, until: float, active=None):
+        self.coarse, self.until = coarse, until
+        self.best = np.full(starts, math.inf)
+        self.stalled = np.zeros(starts, int)
+        self.results = np.full(starts, _code(optx.RESULTS.successful), np.int32)
+        self.stopped = np.zeros(starts, bool) if active is None else ~np.asarray(active, bool)
+        self.done = np.zeros(starts, bool)  # stopped for a reason other than a coarse level's stall
+        self.levelled = np.zeros(starts, bool)
+
+    def update(self, loss, done, result) -> tuple[np.ndarray, np.ndarray]:
+        """Take one iteration's losses, solver `done` flags and result codes of the
+        starts that were active; returns which were active and which improved."""
+        loss = np.asarray(loss, np.float64)
+        active = ~self.stopped
+        ok = active & np.isfinite(loss)
+        diverged = active & ~ok
+        self.results[diverged] = _code(optx.RESULTS.nonlinear_divergence)
+        self.stalled = np.where(ok, np.where(loss > self.best * 0.99, self.stalled + 1, 0), self.stalled)
+        better = ok & (loss < self.best)
+        self.best = np.where(better, loss, self.best)
+        finished = ok & np.asarray(done, bool)
+        self.results[finished] = np.asarray(result, np.int32)[finished]
+        close = ok & ~finished & (self.best <= self.until)
+        self.results[close] = _code(optx.RESULTS.successful)
+        finished |= close
+        if self.coarse:
+            stall = ok & ~finished & (self.stalled >= 2)
+        else:
+            stall = ok & ~finished & (self.stalled >= 4)
+            self.levelled |= stall
+            self.results[stall] = _code(optx.RESULTS.successful)
+            finished |= stall
+        self.done |= diverged | finished
+        self.stopped |= diverged | finished | stall
+        return active, better
+
+    def finish(self) -> None:
+        """After the level's budget: a full-size level's starts still going ran out of steps."""
+        if not self.coarse:
+            self.results[~self.done & ~self.stopped] = _code(optx.RESULTS.max_steps_reached)
 
 
 def prepare_fit(scene, target, free, spheres, depth, levels, edges, polish, loss, loss_scale, mask, nuisance, jac,
@@ -241,31 +324,28 @@ def fit(
     run = _Stepper(objective, SOLVERS[solver](rtol, atol), solver, jac)
 
     history: list[dict] = []
-    steps, result = 0, optx.RESULTS.successful
-    best = (y, math.inf)
-    for level, (width, samples) in enumerate(zip(widths, pyramid)):
-        budget, full_size, until = level_budget(pyramid, level, max_steps, steps, loss_scale)
-        if budget < 1:  # no steps left for this level (the refinement, or any level after max_steps=1)
-            result = optx.RESULTS.max_steps_reached
-            break
-        if best[1] <= until:  # the level before came as close: straight to the refinement
-            continue
-        best, result, n = run.level(best[0], samples, budget, not full_size, history, steps, width, callback, t_start,
-                                    until)
-        steps += n
-    fitted = selection.scene_at(best[0]["scene"])
+    best = {"y": y, "loss": math.inf, "result": optx.RESULTS.successful}
+
+    def level(samples, width, budget, full_size, until, steps):
+        (best["y"], best["loss"]), best["result"], n = run.level(best["y"], samples, budget, not full_size, history, steps,
+                                                                 width, callback, t_start, until)
+        return n
+
+    steps, out_of_steps = run_levels(pyramid, widths, max_steps, loss_scale, lambda: np.array([best["loss"]]), level)
+    result = optx.RESULTS.max_steps_reached if out_of_steps else best["result"]
+    fitted = selection.scene_at(best["y"]["scene"])
     name = _result_name(result)
     return FitResult(
         scene=rtjax.Scene(scene.structure.replace(width=full.structure.width, height=full.structure.height), fitted.params),
         start=full,
         selection=selection,
-        y=best[0],
+        y=best["y"],
         history=history,
         result=name,
         message=("converged: the loss levelled off" if run.levelled else "converged") if name == "successful" else _message(result),
         converged=name == "successful",
         steps=steps,
-        nuisance={k: float(jnp.exp(v)) for k, v in best[0].get("nuisance", {}).items()},
+        nuisance={k: float(jnp.exp(v)) for k, v in best["y"].get("nuisance", {}).items()},
         times={"total": time.perf_counter() - t_start, "first_step": history[0]["seconds"] if history else math.nan},
         solver=solver,
     )
@@ -316,13 +396,6 @@ class _Stepper:
             def fn(y, args):
                 return residuals(y, args), None
         self.fn = fn
-
-        @eqx.filter_jit
-        def loss(y, args):
-            r = objective.residuals(y, args)
-            return 0.5 * jnp.mean(r * r)
-
-        self.loss = loss
         self.levelled = False  # the last level stopped because its loss levelled off
         self.init = eqx.filter_jit(self._init)
         self.step = eqx.filter_jit(self._step)
@@ -342,50 +415,35 @@ class _Stepper:
 
     def level(self, y, samples, budget: int, coarse: bool, history, step0: int, width: int, callback, t_start,
               until: float = 0.0):
-        """Up to `budget` iterations on one level; returns ((best y, best loss), result, n).
-
-        A coarse level also stops once its best loss improves by less than 1 % over two
-        iterations: its optimum is only near the full-size one. Any level stops once its
-        best loss is at most `until` (a refinement takes over)."""
+        """Up to `budget` iterations on one level, stopped by `LevelBook`'s rules;
+        returns ((best y, best loss), result, n)."""
         state = self.init(y, samples)
         # the first step evaluates the start and returns it with its loss (optimistix
         # accepts a first step unconditionally), so no separate evaluation is needed
-        best = (y, math.inf)
-        result, done, n = optx.RESULTS.successful, False, 0
-        stalled = 0
+        book = LevelBook(1, coarse, until)
+        best_y, n = y, 0
         for n in range(1, budget + 1):
             t0 = time.perf_counter()
             y_new, state_new, done, result, loss = self.step(y, state, samples)
-            loss, done = float(loss), bool(done)
-            if not math.isfinite(loss):  # a diverging solver: stop, keep the best so far
-                result, done = optx.RESULTS.nonlinear_divergence, True
-            else:
+            _, better = book.update([float(loss)], [bool(done)], [_code(result)])
+            if math.isfinite(float(loss)):
                 y, state = y_new, state_new
-                stalled = stalled + 1 if loss > best[1] * 0.99 else 0
-                if loss < best[1]:
-                    best = (y, loss)
+            if better[0]:
+                best_y = y
             row = {
                 "step": step0 + n,
                 "width": width,
-                "loss": loss,
-                "best_loss": best[1],
-                "rmse_levels": math.sqrt(2 * best[1]) * 255,
+                "loss": float(loss),
+                "best_loss": float(book.best[0]),
+                "rmse_levels": math.sqrt(2 * book.best[0]) * 255,
                 "seconds": time.perf_counter() - t0,
                 "elapsed": time.perf_counter() - t_start,
             }
             history.append(row)
             if callback is not None:
                 callback(row)
-            if done or (coarse and stalled >= 2):
+            if book.stopped[0]:
                 break
-            if best[1] <= until:  # close enough for the narrow-scale refinement
-                done, result = True, optx.RESULTS.successful
-                break
-            if stalled >= 4 and not coarse:
-                # four iterations without a 1 % decrease at full size: steps are being
-                # rejected (the damping grows) or are negligible; the loss has levelled off
-                done, result, self.levelled = True, optx.RESULTS.successful, True
-                break
-        if not done and not coarse:
-            result = optx.RESULTS.max_steps_reached
-        return best, result, n
+        book.finish()
+        self.levelled = bool(book.levelled[0])
+        return (best_y, float(book.best[0])), _item(book.results[0]), n
