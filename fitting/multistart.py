@@ -32,7 +32,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 import rtjax
 
 from .errors import FitError
-from .objective import LOSSES
+from .objective import LOSSES, nuisance_values
 from .solve import SOLVERS, FitResult, LevelBook, _code, _item, _message, _result_name, _Stepper, prepare_fit, run_levels
 
 AXIS = "starts"
@@ -322,7 +322,7 @@ def fit_multistart(
                  else _message(_item(results[index]))),
         converged=name == "successful",
         steps=steps,
-        nuisance={k: float(jnp.exp(v)) for k, v in pick.get("nuisance", {}).items()},
+        nuisance={k: float(v) for k, v in nuisance_values(pick.get("nuisance", {})).items()},
         times={"total": total, "first_step": history[0]["seconds"] if history else math.nan},
         solver=solver,
     )

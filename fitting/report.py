@@ -11,6 +11,7 @@ import numpy as np
 
 import rtjax
 
+from .objective import NUISANCE_START
 from .solve import FitResult
 
 
@@ -24,7 +25,7 @@ def table_text(result: FitResult) -> str:
     """A fixed-width table: parameter, start → fitted, then the solver's result."""
     rows = result.table()
     for name, value in result.nuisance.items():
-        rows.append((f"nuisance {name}", 1.0, value))
+        rows.append((f"nuisance {name}", NUISANCE_START[name], value))
     width = max([len(r[0]) for r in rows] + [9])
     lines = [f"{'parameter':<{width}}  start → fitted"]
     lines += [f"{name:<{width}}  {_fmt(a)} → {_fmt(b)}" for name, a, b in rows]

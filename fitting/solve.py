@@ -24,7 +24,8 @@ import optimistix as optx
 import rtjax
 
 from .errors import FitError
-from .objective import DENOISE, EXACT_SCALE, LOSSES, NARROW_BELOW, Objective, load_target, make_levels, match_size, nuisance_y0, prepare_mask, schedule_widths
+from .objective import (DENOISE, EXACT_SCALE, LOSSES, NARROW_BELOW, Objective, load_target, make_levels, match_size, nuisance_names,
+                        nuisance_values, nuisance_y0, prepare_mask, schedule_widths)
 from .select import Selection
 
 #: Levenberg–Marquardt's first trust-region step size on every level (its damping
@@ -220,27 +221,30 @@ def prepare_fit(scene, target, free, spheres, depth, levels, edges, polish, loss
     selection = Selection(full, free, spheres)
     y = {"scene": selection.y0()}
     dtype = jnp.result_type(full.params.centers)
+    nuisance = nuisance_names(nuisance or ())
     if nuisance:
         y["nuisance"] = nuisance_y0(nuisance, jax.tree_util.tree_leaves(y["scene"])[0].dtype)
     if jac is None:
         jac = "bwd" if selection.size() > 200 else "fwd"
-    blurred = "blur" in (nuisance or ())
+    blurred = "blur" in nuisance
     widths = schedule_widths(full.structure.width, levels, blurred=blurred)
     given = [1.0] if edges is None else [float(e) for e in np.ravel(edges)]
     if not given or min(given) <= 0:
         raise FitError(f"edge widths must be > 0, not {edges}")
     # one value: every level; several: one per level in order, the last repeating
     per_level = [given[min(i, len(given) - 1)] for i in range(len(widths))]
-    exact = [False] * len(widths)
-    if polish and exact_polish and len(widths) > 1:
+    exact, whole = [False] * len(widths), [False] * len(widths)
+    if blurred:  # a photo: the full-size level is the whole image through `objective.camera`
+        whole[-1] = True
+    elif polish and exact_polish and len(widths) > 1:
         # matched at pixel centres, the full-size level needs no box-filtered one before it
         # (measured: the one it replaces reduced the loss by ~2 % in its 4-5 steps)
         per_level[-1], exact[-1] = float(polish), True
     elif polish:
         widths, per_level, exact = widths + [widths[-1]], per_level + [float(polish)], exact + [bool(exact_polish)]
     pyramid = make_levels(target, prepare_mask(mask, *target.shape[:2]), widths, per_level, dtype, exact=exact,
-                          denoise=DENOISE if blurred else 0.0)
-    if pyramid[-1].exact and not blurred:  # the same samples again, at a narrow robust scale
+                          denoise=DENOISE if blurred else 0.0, whole=whole)
+    if pyramid[-1].exact:  # the same samples again, at a narrow robust scale
         pyramid.append(pyramid[-1]._replace(scale=jnp.asarray(EXACT_SCALE, dtype)))
         widths = widths + [widths[-1]]
     objective = Objective(selection, depth, loss, loss_scale)
@@ -304,9 +308,11 @@ def fit(
       coarser than the image use `objective.COARSE_SCALE` times it unless a blur is
       fitted).
     nuisance: fitted jointly with the scene for photo-like targets: 'gain' and 'gamma'
-      (model = 255·(gain·I/255)^γ) and 'blur' (a Gaussian σ in pixels: a wider box
-      filter at edges on coarse levels, the mean of three renders around each sample
-      at full size, see `Objective.model`).
+      (response 255·(gain·I/255)^γ), 'blur' (a Gaussian σ in pixels), 'chroma' (a
+      further blur of the chroma, as JPEG's 4:2:0 subsampling makes) and 'order' (the
+      share of the blur after the response); 'camera': all five (`objective.camera`).
+      With a blur the coarse levels widen the edges' box filter, and the full-size
+      level is the whole image through `camera` (`polish` is not used).
     jac: 'fwd' (default: the Jacobian by forward mode, one batched pass per step) or
       'bwd' (reverse mode, for many free parameters such as texels).
     callback: called after every iteration with that iteration's history row.
@@ -345,7 +351,7 @@ def fit(
         message=("converged: the loss levelled off" if run.levelled else "converged") if name == "successful" else _message(result),
         converged=name == "successful",
         steps=steps,
-        nuisance={k: float(jnp.exp(v)) for k, v in best["y"].get("nuisance", {}).items()},
+        nuisance={k: float(v) for k, v in nuisance_values(best["y"].get("nuisance", {})).items()},
         times={"total": time.perf_counter() - t_start, "first_step": history[0]["seconds"] if history else math.nan},
         solver=solver,
     )

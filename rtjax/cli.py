@@ -349,7 +349,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "--no-exact-polish: a last box-filtered level --polish wide (then use e.g. 0.02), for antialiased targets")
     f.add_argument("--loss", choices=("l2", "huber", "cauchy"), default="cauchy", help="residual loss (default cauchy: robust)")
     f.add_argument("--loss-scale", type=float, default=10.0, help="robust loss scale in levels (default 10)")
-    f.add_argument("--nuisance", default="", help="also fit a camera response: gain,gamma and/or blur (a Gaussian, pixels)")
+    f.add_argument("--nuisance", default="", help="also fit a camera model for a photo-like target: gain,gamma,blur,chroma,order, or camera (all five: response, Gaussian blur in pixels, JPEG chroma blur, blur before/after the response)")
     f.add_argument("--mask", default=None, help="an image whose dark pixels are ignored")
     f.add_argument("--frame", type=int, default=0, help="which rend frame of the deck to fit (default 0)")
     f.add_argument("--assignment-order", action="store_true", help="the target is a Sun raster file in the assignment's R,G,B order")

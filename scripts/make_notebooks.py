@@ -519,21 +519,20 @@ show([img_start2, img_fit2, target, difference(img_fit2, target)],
         from grey again, three ways:
 
         1. `loss="cauchy"` (the default, as in step 2), the scene's parameters only;
-        2. `loss="l2"`, plain least squares, with the nuisance parameters `gain`, `gamma`
-           and `blur` of a camera model fitted jointly (`nuisance=("gain", "gamma", "blur")`);
+        2. `loss="l2"`, plain least squares, with the nuisance parameters of a camera
+           model fitted jointly (`nuisance=("camera",)`: `gain` and `gamma`, `blur`, a
+           further `chroma` blur for JPEG's subsampled colour, and the `order` of blur
+           and response; `fitting.camera` is the model);
         3. `loss="cauchy"` with the same nuisance parameters.
 
         The first and the last differ by the nuisance parameters, the last two by the loss.
         """),
         code('''
-def camera(image, gain=1.15, gamma=0.8, blur=0.7):
-    """A camera's view of a render: lens blur, then the response 255·(gain·I/255)^gamma."""
-    image = fitting.smooth(image, blur)
-    return 255 * np.clip(gain * image / 255, 0, 1) ** gamma
+CAMERA = {"gain": 1.15, "gamma": 0.8, "blur": 0.7}  # lens blur, then the response 255·(gain·I/255)^gamma
 
 
 def photograph(scene, seed=0):
-    image = camera(rtjax.render(scene, spp=4))
+    image = np.asarray(fitting.camera(rtjax.render(scene, spp=4), CAMERA))
     image = image + np.random.default_rng(seed).normal(0, 3, image.shape)
     pil = Image.fromarray(rtjax.to_uint8(np.clip(image, 0, 255)))
     h, w = image.shape[:2]
@@ -549,7 +548,7 @@ def photograph(scene, seed=0):
 
 photo, nbytes = photograph(truth)
 clean = np.asarray(rtjax.render(truth))
-stamp = np.abs(photo - camera(rtjax.render(truth, spp=4))).max(-1) > 40
+stamp = np.abs(photo - np.asarray(fitting.camera(rtjax.render(truth, spp=4), CAMERA))).max(-1) > 40
 print(f"photo: {photo.shape[1]}×{photo.shape[0]}, JPEG {nbytes} bytes; RMS difference from the render: "
       f"{np.sqrt(np.mean((photo - clean) ** 2)):.1f} levels; {stamp.sum()} pixels off by more than 40 levels "
       f"from the camera's noiseless view (the stamp)")
@@ -558,8 +557,8 @@ show([target, photo, difference(photo, target, gain=2)], ["render (truth)", "pho
 '''),
         code('''
 WAYS = {"cauchy": dict(loss="cauchy"),
-        "l2 + camera": dict(loss="l2", nuisance=("gain", "gamma", "blur")),
-        "cauchy + camera": dict(loss="cauchy", nuisance=("gain", "gamma", "blur"))}
+        "l2 + camera": dict(loss="l2", nuisance=("camera",)),
+        "cauchy + camera": dict(loss="cauchy", nuisance=("camera",))}
 runs = {}
 for label, options in WAYS.items():
     t0 = time.perf_counter()
@@ -584,8 +583,7 @@ plot_histories(list(runs.values()), list(runs), "photo-like target: colours and 
 labels = list(runs)
 show([photo] + [rtjax.render(runs[k].scene) for k in labels], ["photo-like target"] + [f"fitted scene: {k}" for k in labels],
      height=2.4)
-model = {k: camera(rtjax.render(runs[k].scene, spp=4), **runs[k].nuisance) if runs[k].nuisance
-         else np.asarray(rtjax.render(runs[k].scene, spp=4)) for k in labels}
+model = {k: np.asarray(fitting.camera(rtjax.render(runs[k].scene, spp=4), runs[k].nuisance)) for k in labels}
 show([difference(model[k], photo, gain=3) for k in labels], [f"|model − photo| ×3: {k}" for k in labels], height=2.4)
 '''),
         md("""
@@ -596,8 +594,8 @@ show([difference(model[k], photo, gain=3) for k in labels], [f"|model − photo|
           of the colour range), and the fitted scene (first fitted image) is rendered
           with the photo's exposure and contrast instead of its own; the sky, whose
           colour is not free, is left over in its `|model − photo|` map.
-        * **With `gain`, `gamma` and `blur`** fitted jointly, the response is absorbed by
-          the three numbers it was made with (printed beside each fit), and the scene's
+        * **With the camera model** fitted jointly, the response is absorbed by the
+          numbers it was made with (printed beside each fit), and the scene's
           own colours and `ke` come out within about 0.02 of the truth. The fitted images
           are renders of the scene alone, without the camera, and look like the truth.
         * **The loss**: the date stamp is a few hundred pixels of a colour no scene

@@ -11,7 +11,7 @@ import sys
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import ROOT
+from conftest import ROOT, scene_from_text, truth_deck
 
 import fitting
 import rtjax
@@ -121,6 +121,27 @@ def test_photo_like_target_with_gain_and_gamma(truth):
     res = fitting.fit(start, np.clip(photo, 0, 255), "colors", nuisance=("gain", "gamma"), max_steps=25)
     np.testing.assert_allclose(np.asarray(res.scene.params.diffuse), np.asarray(truth.params.diffuse), atol=0.03)
     assert abs(res.nuisance["gain"] - 1.2) < 0.08 and abs(res.nuisance["gamma"] - 0.9) < 0.05
+
+
+def test_photo_like_target_through_the_camera_model(tmp_path):
+    """A JPEG photo (quality 85, Pillow's 4:2:0 chroma) of the truth, 96 pixels wide,
+    rendered with 4×4 samples, blurred by σ = 0.8 px and seen through
+    255·(1.1·I/255)^0.9, with noise of σ = 2 levels: `nuisance=("camera",)` brings the
+    centres back from a unit off, and the response and blur close to how they were
+    made. (Measured: 0.013 units in 13 iterations; without chroma and order, 0.12.)"""
+    from PIL import Image
+
+    truth = scene_from_text(truth_deck(96))
+    rng = np.random.default_rng(1)
+    made = {"gain": 1.1, "gamma": 0.9, "blur": 0.8}
+    photo = np.asarray(fitting.camera(rtjax.render(truth, spp=4), made)) + rng.normal(0, 2, (truth.structure.height, truth.structure.width, 3))
+    Image.fromarray(np.clip(photo + 0.5, 0, 255).astype(np.uint8)).save(tmp_path / "photo.jpg", quality=85)
+    start = moved(truth, centers=np.array([[0.8, -1.0, 0.6], [-0.7, 1.0, -0.9]]))
+    res = fitting.fit(start, str(tmp_path / "photo.jpg"), "centers", nuisance=("camera",))
+    err = np.abs(np.asarray(res.scene.params.centers) - np.asarray(truth.params.centers))
+    assert err.max() < 0.05, res.table()
+    assert abs(res.nuisance["gamma"] - 0.9) < 0.03 and abs(res.nuisance["gain"] - 1.1) < 0.05, res.nuisance
+    assert abs(res.nuisance["blur"] - 0.8) < 0.15 and 0.3 < res.nuisance["chroma"] < 2, res.nuisance
 
 
 def test_targets_from_files_in_both_byte_orders(truth, target, tmp_path):

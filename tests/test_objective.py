@@ -6,10 +6,13 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from conftest import scene_from_text
 
 import rtjax
-from fitting.objective import COARSE_SCALE, EXACT_SCALE, Objective, apply_nuisance, edge_band, make_levels, robust, schedule_widths, smooth
+from fitting.errors import FitError
+from fitting.objective import (COARSE_SCALE, EXACT_SCALE, Objective, apply_nuisance, camera, edge_band, gaussian_blur, make_levels,
+                               nuisance_names, robust, schedule_widths, smooth)
 from fitting.select import Selection
 from fitting.solve import prepare_fit
 
@@ -160,32 +163,88 @@ def test_the_full_size_level_is_exact_by_default_and_takes_every_edge_pixel():
     assert [s.exact for s in prepare_fit(scene, *args[:6], None, *args[7:])[5]] == [False, False]
 
 
-def test_a_fitted_blur_is_three_renders_at_full_size_and_wider_edges_below():
-    """Full size: the mean of renders at three points σ√2 from each sample, 120° apart
-    (covariance σ²·I, the photo's Gaussian); coarse levels: the edges' box widened to
-    the same variance."""
+def _blur(image, sigma, radius=8):
+    """A reference Gaussian blur, written apart from fitting's: np.convolve per row and
+    column of the edge-extended image, kernel truncated at `radius`."""
+    k = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
+    k /= k.sum()
+    out = np.asarray(image, np.float64)
+    for axis in (0, 1):
+        pad = [(0, 0)] * out.ndim
+        pad[axis] = (radius, radius)
+        padded = np.pad(out, pad, mode="edge")
+        out = np.apply_along_axis(lambda v: np.convolve(v, k, mode="valid"), axis, padded)
+    return out
+
+
+def test_camera_blurs_in_the_responses_order_and_blurs_chroma_further():
+    """`camera` against NumPy: a share `order` of the blur after the response, the rest
+    before; then Cb and Cr of JPEG's YCbCr (ITU-R BT.601, written out here) blurred by
+    `chroma` more, Y untouched."""
+    rng = np.random.default_rng(3)
+    image = np.clip(rng.uniform(0, 255, (18, 21, 3)) * (rng.uniform(size=(18, 21, 1)) > 0.5), 0, 255)
+    nuisance = {"gain": 1.1, "gamma": 0.8, "blur": 0.9, "chroma": 1.2, "order": 0.3}
+
+    def response(x):
+        return 255 * np.clip(1.1 * x / 255, 0, 1) ** 0.8
+
+    early, late = response(_blur(image, 0.9)), _blur(response(image), 0.9)
+    rgb = 0.7 * early + 0.3 * late
+    ycc = rgb @ np.array([[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]]).T
+    ycc[..., 1:] = _blur(ycc[..., 1:], 1.2)
+    expect = ycc @ np.linalg.inv(np.array([[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]])).T
+    got = np.asarray(camera(jnp.asarray(image), nuisance))
+    np.testing.assert_allclose(got, expect, rtol=0, atol=1e-6)
+    # the solver's coordinates: logs, and the logit of order
+    logs = {k: np.log(v / (1 - v)) if k == "order" else np.log(v) for k, v in nuisance.items()}
+    np.testing.assert_allclose(np.asarray(camera(jnp.asarray(image), logs, logs=True)), expect, rtol=0, atol=1e-6)
+    grey = np.repeat(image[..., :1], 3, axis=2)  # no chroma: the chroma blur changes nothing
+    no_chroma = {k: v for k, v in nuisance.items() if k != "chroma"}
+    np.testing.assert_allclose(np.asarray(camera(jnp.asarray(grey), nuisance)), np.asarray(camera(jnp.asarray(grey), no_chroma)),
+                               rtol=0, atol=1e-9)
+    # gaussian_blur truncated as smooth is: the same blur
+    np.testing.assert_allclose(np.asarray(gaussian_blur(jnp.asarray(image), 1.3, radius=4)), smooth(image, 1.3), rtol=0, atol=1e-9)
+
+
+def test_a_fitted_blur_is_the_whole_image_at_full_size_and_wider_edges_below():
+    """Full size: the whole image, each pixel box-filtered at edges, through `camera`,
+    looked at in the level's pixels, with derivatives in the blur that match finite differences;
+    coarse levels: the edges' box widened to the blur's variance."""
     scene = scene_from_text(DECK).astype(jnp.float64)
     target = np.asarray(rtjax.render(scene))
     w = scene.structure.width
     weight = np.ones(target.shape[:2] + (1,))
-    coarse, full = make_levels(target, weight, [w // 2, w], [1.0, 1.0], jnp.float64, exact=[False, True])
+    coarse, full = make_levels(target, weight, [w // 2, w], [1.0, 1.0], jnp.float64, whole=[False, True])
+    assert full.whole and not full.exact and not coarse.whole
+    i, j = (np.floor(np.asarray(full.xy)[:, a]).astype(int) for a in (0, 1))
+    np.testing.assert_array_equal(np.asarray(full.target), target[j, i])
     selection = Selection(scene, "centers", None)
     objective = Objective(selection, None, "l2", 10.0)
     sigma = 0.7
-    y = {"scene": selection.y0(), "nuisance": {"blur": jnp.log(sigma)}}
-    angle = np.arange(3) * 2 * np.pi / 3
-    offsets = np.sqrt(2) * sigma * np.stack([np.cos(angle), np.sin(angle)], -1)
-    np.testing.assert_allclose(offsets.mean(0), 0, atol=1e-12)
-    np.testing.assert_allclose(offsets.T @ offsets / 3, sigma**2 * np.eye(2), atol=1e-12)
-    xy = np.asarray(full.xy)
-    expect = np.mean([np.asarray(rtjax.render_samples(scene, xy + o, edges=1.0)) for o in offsets], axis=0)
+    nuisance = {"blur": jnp.log(sigma), "chroma": jnp.log(0.8), "order": jnp.asarray(0.4)}
+    y = {"scene": selection.y0(), "nuisance": nuisance}
+    expect = np.asarray(camera(rtjax.render(scene, edges=1.0), nuisance, logs=True))[j, i]
     np.testing.assert_allclose(np.asarray(objective.model(y, full)), expect, rtol=0, atol=1e-9)
     step = float(coarse.step)
     wide = np.sqrt(1 + 12 * (sigma / step) ** 2)
     expect = np.asarray(rtjax.render_samples(scene, np.asarray(coarse.xy), step=step, edges=wide))
     np.testing.assert_allclose(np.asarray(objective.model(y, coarse)), expect, rtol=0, atol=1e-9)
-    g = jax.grad(lambda b: jnp.sum(objective.model({"scene": y["scene"], "nuisance": {"blur": b}}, full)))(jnp.log(sigma))
-    assert np.isfinite(float(g)) and abs(float(g)) > 0
+
+    def total(b):
+        return jnp.sum(objective.model({"scene": y["scene"], "nuisance": {**nuisance, "blur": b}}, full))
+
+    b, h = jnp.log(sigma), 1e-5
+    fd = (float(total(b + h)) - float(total(b - h))) / (2 * h)
+    g = float(jax.jacfwd(total)(b))
+    assert abs(g) > 1 and abs(g - fd) < 1e-5 * abs(fd)
+
+
+def test_nuisance_names():
+    assert nuisance_names(["camera"]) == ("gain", "gamma", "blur", "chroma", "order")
+    assert nuisance_names(["blur", "gain"]) == ("gain", "blur")
+    for bad, says in ((["exposure"], "unknown nuisance parameter 'exposure'"), (["chroma"], "fit blur with them")):
+        with pytest.raises(FitError, match=says):
+            nuisance_names(bad)
 
 
 def test_default_schedule_an_eighth_a_quarter_and_full_size():
