@@ -3,9 +3,9 @@
 The model image is the silhouette-aware render (so residuals have derivatives through
 edges), optionally passed through a camera model whose nuisance parameters (exposure
 gain, gamma, blur, JPEG's chroma blur) a photo-like target may need; residuals can be
-masked and made robust to outliers
-(Huber or Cauchy, as √(2ρ(r)) so least-squares solvers minimise Σρ). A pyramid of
-area-averaged targets gives the coarse-to-fine schedule.
+masked and made robust to outliers (Huber or Cauchy, as √(2ρ(r)) so least-squares
+solvers minimise Σρ). A pyramid of area-averaged targets gives the coarse-to-fine
+schedule.
 """
 
 from __future__ import annotations
@@ -200,10 +200,9 @@ def camera(image, nuisance: dict, *, logs: bool = False):
     value = nuisance_values(nuisance, logs=logs)
     given = {k: v for k, v in value.items() if k in ("gain", "gamma")}
     if "blur" in value:
-        sharp = image
-        out = apply_nuisance(gaussian_blur(sharp, value["blur"]), given)
+        out = apply_nuisance(gaussian_blur(image, value["blur"]), given)
         if "order" in value:
-            late = gaussian_blur(apply_nuisance(sharp, given), value["blur"])
+            late = gaussian_blur(apply_nuisance(image, given), value["blur"])
             out = out + value["order"] * (late - out)
     else:
         out = apply_nuisance(image, given)
@@ -357,11 +356,12 @@ class Objective:
         (`rtjax.render`'s silhouette-aware mode, 1 pixel wide), through `camera` (the
         blur a true Gaussian, in the response's order, and JPEG's chroma blur), looked
         at in the level's pixels.
-        Measured on the sample deck's photo-like target (README), started at the truth:
-        largest centre error 0.038 units (γ 1/1.1) and 0.066 (γ 1.1) with all five
-        nuisance parameters; the mean of renders at three points σ√2 around each
-        sample this replaced left 0.135 and 0.084, fitting σ 0.79 for 1.04, at twice
-        the cost per step (a whole image renders in the cheaper keyed mode)."""
+        Measured on the sample deck's photo-like target (README), from ±3 units, two
+        starts each: largest centre error 0.037–0.038 units (γ 1/1.1) and 0.067–0.068
+        (γ 1.1) with all five nuisance parameters; the mean of renders at three points
+        σ√2 around each sample, which this replaced, left 0.126–0.129 and 0.084 and
+        fitted σ 0.79 for 1.04, at twice the cost per step (a whole image renders in the
+        cheaper keyed mode)."""
         scene = rtjax.Scene(self.selection.scene.structure, self.selection.params(y["scene"]))
         nuisance = y.get("nuisance", {})
 
