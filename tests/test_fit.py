@@ -182,6 +182,11 @@ def test_cli_fit_bad_input_is_one_line(tmp_path, truth):
                           capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert proc.returncode == 2 and "aspect" in proc.stderr and "Traceback" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
+    rtjax.save_image(tmp_path / "t.png", np.zeros((truth.structure.height, truth.structure.width, 3)))
+    proc = subprocess.run([sys.executable, "-m", "rtjax", "fit", str(tmp_path / "start.dat"), str(tmp_path / "t.png"),
+                           "--nuisance", "gain,chroma"], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert proc.stderr.strip().endswith("the nuisance parameters chroma and order model a photo's blur: fit blur with them")
 
 
 def test_recovers_the_texels_it_can_see(tmp_path):
