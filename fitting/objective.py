@@ -123,8 +123,8 @@ def schedule_widths(width: int, levels: int | Sequence[int] | None, blurred: boo
     width where an eighth would be below 48 pixels): the coarse levels do the
     travelling, cheaply, and the full-size level, matched at pixel centres, the rest
     (measured on the sample deck, README "How well it works"). `blurred` (a fitted
-    blur, whose full-size level renders three points per sample): three levels
-    halving the width, so that a half-size level brings it closer first. An int k
+    blur, whose full-size level renders the whole image through `camera`): three
+    levels halving the width, so that a half-size level brings it closer first. An int k
     gives k levels halving the width (none below 48 pixels); a sequence is taken as
     given (sorted, capped at the full width)."""
     if levels is None and blurred:
