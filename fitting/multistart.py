@@ -257,11 +257,9 @@ def fit_multistart(
 
     histories: list[list[dict]] = [[] for _ in range(starts)]
     book = LevelBook(padded, False, 0.0, active=real)  # the last level's (none yet)
-    state = {"ys": ys}
 
     def level(samples, width, budget, full_size, until, steps):
-        nonlocal book
-        ys = state["ys"]
+        nonlocal book, ys
         states = run.init(ys, samples)
         best_y = ys
         book = LevelBook(padded, not full_size, until, active=real)
@@ -291,11 +289,11 @@ def fit_multistart(
             if book.stopped.all():
                 break
         book.finish()
-        state["ys"] = best_y
+        ys = best_y
         return n
 
     steps, out_of_steps = run_levels(pyramid, widths, max_steps, loss_scale, lambda: book.best[real], level)
-    ys, results, best_loss, levelled = state["ys"], book.results, book.best, book.levelled
+    results, best_loss, levelled = book.results, book.best, book.levelled
     if out_of_steps:
         results[real & (results == _code(optx.RESULTS.successful))] = _code(optx.RESULTS.max_steps_reached)
 

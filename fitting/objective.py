@@ -23,9 +23,8 @@ import rtjax
 from .errors import FitError
 from .select import Selection
 
+#: The camera model's nuisance parameters (`camera`); `nuisance=("camera",)`: all of them.
 NUISANCE = ("gain", "gamma", "blur", "chroma", "order")
-#: `nuisance=("camera",)`: all of them.
-CAMERA = NUISANCE
 #: Start values of the nuisance parameters (the solver moves their logs; the logit of
 #: 'order', a share): no gain or gamma change; a Gaussian blur of σ = 0.3 pixels; a
 #: further chroma blur of 0.5 pixels; the blur half before, half after the response.
@@ -304,6 +303,7 @@ def make_levels(target: np.ndarray, weight: np.ndarray, widths: Sequence[int], e
     whole = list(whole) + [False] * (len(widths) - len(whole))
     for w, e, x, every in zip(widths, edges, exact, whole):
         h, xy, step = level_grid(width, height, w)
+        all_edges = x or every  # takes every edge pixel
         if every and (h, w) != (height, width):
             raise FitError(f"a whole level is the full-size image ({width} pixels wide), not {w}")
         small = target if (h, w) == (height, width) else downsample(target, h, w)
@@ -311,11 +311,11 @@ def make_levels(target: np.ndarray, weight: np.ndarray, widths: Sequence[int], e
         t, wt = small.reshape(-1, 3), wsmall.reshape(-1, 1)
         band = np.flatnonzero(edge_band(smooth(small, denoise) if denoise else small).ravel())
         size = k if k is not None else len(xy)
-        if x or every:  # every edge pixel, and as many others up to `exact_share` of them all
+        if all_edges:  # every edge pixel, and as many others up to `exact_share` of them all
             size = max(size, len(band), min(2 * len(band), int(exact_share * len(xy))))
         else:
             k = size
-        take = len(band) if x or every else min(len(band), (3 * size) // 4)
+        take = len(band) if all_edges else min(len(band), (3 * size) // 4)
         if len(xy) <= size:  # the coarsest level, or one no larger: all of it
             pick = np.arange(len(xy))
         else:
@@ -411,7 +411,7 @@ def nuisance_names(names: Sequence[str]) -> tuple[str, ...]:
     if bad:
         raise FitError(f"unknown nuisance parameter {bad[0]!r}; choose from {', '.join(NUISANCE)} or camera (all)")
     if "camera" in names:
-        names = CAMERA
+        names = NUISANCE
     if ("chroma" in names or "order" in names) and "blur" not in names:
         raise FitError("the nuisance parameters chroma and order model a photo's blur: fit blur with them")
     return tuple(n for n in NUISANCE if n in names)

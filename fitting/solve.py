@@ -176,7 +176,6 @@ class LevelBook:
         self.stalled = np.zeros(starts, int)
         self.results = np.full(starts, _code(optx.RESULTS.successful), np.int32)
         self.stopped = np.zeros(starts, bool) if active is None else ~np.asarray(active, bool)
-        self.done = np.zeros(starts, bool)  # stopped for a reason other than a coarse level's stall
         self.levelled = np.zeros(starts, bool)
 
     def update(self, loss, done, result) -> tuple[np.ndarray, np.ndarray]:
@@ -202,14 +201,13 @@ class LevelBook:
             self.levelled |= stall
             self.results[stall] = _code(optx.RESULTS.successful)
             finished |= stall
-        self.done |= diverged | finished
         self.stopped |= diverged | finished | stall
         return active, better
 
     def finish(self) -> None:
         """After the level's budget: a full-size level's starts still going ran out of steps."""
         if not self.coarse:
-            self.results[~self.done & ~self.stopped] = _code(optx.RESULTS.max_steps_reached)
+            self.results[~self.stopped] = _code(optx.RESULTS.max_steps_reached)
 
 
 def prepare_fit(scene, target, free, spheres, depth, levels, edges, polish, loss, loss_scale, mask, nuisance, jac,
@@ -330,28 +328,30 @@ def fit(
     run = _Stepper(objective, SOLVERS[solver](rtol, atol), solver, jac)
 
     history: list[dict] = []
-    best = {"y": y, "loss": math.inf, "result": optx.RESULTS.successful}
+    best_loss, result = math.inf, optx.RESULTS.successful
 
     def level(samples, width, budget, full_size, until, steps):
-        (best["y"], best["loss"]), best["result"], n = run.level(best["y"], samples, budget, not full_size, history, steps,
-                                                                 width, callback, t_start, until)
+        nonlocal y, best_loss, result
+        (y, best_loss), result, n = run.level(y, samples, budget, not full_size, history, steps, width, callback, t_start,
+                                              until)
         return n
 
-    steps, out_of_steps = run_levels(pyramid, widths, max_steps, loss_scale, lambda: np.array([best["loss"]]), level)
-    result = optx.RESULTS.max_steps_reached if out_of_steps else best["result"]
-    fitted = selection.scene_at(best["y"]["scene"])
+    steps, out_of_steps = run_levels(pyramid, widths, max_steps, loss_scale, lambda: np.array([best_loss]), level)
+    if out_of_steps:
+        result = optx.RESULTS.max_steps_reached
+    fitted = selection.scene_at(y["scene"])
     name = _result_name(result)
     return FitResult(
         scene=rtjax.Scene(scene.structure.replace(width=full.structure.width, height=full.structure.height), fitted.params),
         start=full,
         selection=selection,
-        y=best["y"],
+        y=y,
         history=history,
         result=name,
         message=("converged: the loss levelled off" if run.levelled else "converged") if name == "successful" else _message(result),
         converged=name == "successful",
         steps=steps,
-        nuisance={k: float(v) for k, v in nuisance_values(best["y"].get("nuisance", {})).items()},
+        nuisance={k: float(v) for k, v in nuisance_values(y.get("nuisance", {})).items()},
         times={"total": time.perf_counter() - t_start, "first_step": history[0]["seconds"] if history else math.nan},
         solver=solver,
     )
@@ -431,15 +431,16 @@ class _Stepper:
         for n in range(1, budget + 1):
             t0 = time.perf_counter()
             y_new, state_new, done, result, loss = self.step(y, state, samples)
-            _, better = book.update([float(loss)], [bool(done)], [_code(result)])
-            if math.isfinite(float(loss)):
+            loss = float(loss)
+            _, better = book.update([loss], [bool(done)], [_code(result)])
+            if math.isfinite(loss):
                 y, state = y_new, state_new
             if better[0]:
                 best_y = y
             row = {
                 "step": step0 + n,
                 "width": width,
-                "loss": float(loss),
+                "loss": loss,
                 "best_loss": float(book.best[0]),
                 "rmse_levels": math.sqrt(2 * book.best[0]) * 255,
                 "seconds": time.perf_counter() - t0,
