@@ -386,7 +386,6 @@ def bench_scale(scene, cfg: Config, log: Callable[[str], None]) -> dict:
     import jax
 
     import rtjax
-    from rtjax import spheres
 
     out: dict = {"spheres": [], "pixels": [], "memory": []}
     log(f"scale: random scenes at width {cfg.scale_width}, default settings (float32, depth 10, 1×1) …")
@@ -396,21 +395,21 @@ def bench_scale(scene, cfg: Config, log: Callable[[str], None]) -> dict:
         m = timed(lambda sc=sc: rtjax.render(sc), cfg.scale_repeats)
         images[n] = np.asarray(m.pop("out"))
         out["spheres"].append({"n": n, "width": sc.structure.width, "height": sc.structure.height,
-                               "culled": spheres.culls(n), **m})
+                               "culled": sc.structure.culls, **m})
         log(f"  {n:5d} spheres  {1e3 * m['median_s']:9.1f} ms  compile {m['compile_s']:5.1f} s"
-            f"{'  (culled)' if spheres.culls(n) else ''}")
-    brute = [n for n in cfg.brute_counts if n in scenes and spheres.culls(n)]
+            f"{'  (culled)' if sc.structure.culls else ''}")
+    brute = [n for n in cfg.brute_counts if n in scenes and scenes[n].structure.culls]
     if brute:
         log("  brute force (every ray against every sphere), one timed run each …")
-        with spheres.brute_force():
-            for n in brute:
-                m = timed(lambda sc=scenes[n]: rtjax.render(sc), 1)
-                img = np.asarray(m.pop("out"))
-                row = next(r for r in out["spheres"] if r["n"] == n)
-                row["brute"] = m
-                row["identical_to_brute"] = bool(np.array_equal(img, images[n]))
-                row["max_abs_diff_to_brute"] = float(np.max(np.abs(img - images[n])))
-                log(f"  {n:5d} spheres  brute {1e3 * m['median_s']:9.1f} ms  identical: {row['identical_to_brute']}")
+        for n in brute:
+            sc = rtjax.Scene(scenes[n].structure.replace(culling=False), scenes[n].params)
+            m = timed(lambda sc=sc: rtjax.render(sc), 1)
+            img = np.asarray(m.pop("out"))
+            row = next(r for r in out["spheres"] if r["n"] == n)
+            row["brute"] = m
+            row["identical_to_brute"] = bool(np.array_equal(img, images[n]))
+            row["max_abs_diff_to_brute"] = float(np.max(np.abs(img - images[n])))
+            log(f"  {n:5d} spheres  brute {1e3 * m['median_s']:9.1f} ms  identical: {row['identical_to_brute']}")
     log(f"scale: the deck at widths {', '.join(map(str, cfg.widths))} …")
     for w in cfg.widths:
         sc = scene.resized(w)

@@ -17,6 +17,8 @@ import time
 from collections.abc import Iterator
 
 from .errors import DeckError, RtjaxError
+from .render import MAX_EDGE_WIDTH
+from .xla import tune_cpu, use_compilation_cache
 
 #: Image sides beyond this need --allow-large (a typo like `size 40000` would take minutes and GBs).
 MAX_SIDE = 16384
@@ -47,8 +49,8 @@ def _edge_width(text: str) -> float:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number of pixels, found {text!r}") from None
-    if not (0 <= value <= 16):
-        raise argparse.ArgumentTypeError(f"expected a width in [0, 16] pixels, found {text}")
+    if not (0 <= value <= MAX_EDGE_WIDTH):
+        raise argparse.ArgumentTypeError(f"expected a width in [0, {MAX_EDGE_WIDTH:g}] pixels, found {text}")
     return value
 
 
@@ -188,8 +190,8 @@ def _float_list(text: str) -> list[float]:
         values = [float(x) for x in text.split(",") if x.strip()]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected numbers separated by commas, found {text!r}") from None
-    if not values or any(not (0 < v <= 16) for v in values):
-        raise argparse.ArgumentTypeError(f"expected edge widths in (0, 16] pixels, found {text!r}")
+    if not values or any(not (0 < v <= MAX_EDGE_WIDTH) for v in values):
+        raise argparse.ArgumentTypeError(f"expected edge widths in (0, {MAX_EDGE_WIDTH:g}] pixels, found {text!r}")
     return values
 
 
@@ -405,35 +407,14 @@ def _interrupt_on_termination() -> Iterator[None]:
             signal.signal(getattr(signal, n), signal.SIG_DFL if old is None else old)
 
 
-def cache_dir() -> str | None:
-    """Where the command keeps XLA's compiled programs between runs: `$RTJAX_CACHE`, or
-    `$XDG_CACHE_HOME/rtjax/xla` (default `~/.cache/rtjax/xla`); `RTJAX_CACHE=off`: none.
-    A fit compiles its solver steps (~15-20 s on a 2-core CPU); the next fit of a scene
-    of the same structure and size loads them instead."""
-    value = os.environ.get("RTJAX_CACHE")
-    if value is not None:
-        return None if value.strip().lower() in ("", "off", "0", "none") else value
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "rtjax", "xla")
-
-
-def _use_compilation_cache() -> None:
-    path = cache_dir()
-    if path is None:
-        return
-    import jax
-
-    jax.config.update("jax_compilation_cache_dir", path)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)  # renders and solver steps, not trivia
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     with _interrupt_on_termination():
         try:
-            _start_distributed(args)  # before anything (a deck's arrays included) starts JAX
-            _use_compilation_cache()
+            tune_cpu()  # before anything (a deck's arrays included) starts JAX
+            _start_distributed(args)
+            use_compilation_cache()
             return args.run(args)
         except RtjaxError as e:
             print(_one_line(e), file=sys.stderr)

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import importlib
 
 import jax
 import jax.numpy as jnp
@@ -42,6 +41,7 @@ import reference
 import rtjax
 from conftest import quick_xla
 from rtjax.camera import pixel_grid
+from rtjax.render import EDGE_CHUNK_MIN
 
 SPP = 32  # the yardstick: 32 × 32 samples per pixel
 STEP = 0.2  # finite-difference step, in pixels (world size at the sphere's distance)
@@ -324,7 +324,7 @@ def test_silhouette_seen_through_glass(axis):
 
 
 # --------------------------------------------------------------------------------------
-# (f) the blend's parts (`render_samples(parts=True)`), what fitting at pixel centres uses
+# (f) the blend's parts (`edge_samples`), what fitting at pixel centres uses
 
 
 def _pixel_centres(s: rtjax.Scene):
@@ -336,7 +336,7 @@ def _pixel_centres(s: rtjax.Scene):
 def test_parts_centre_is_the_plain_colour_and_sides_straddle_it(name):
     s = scene(name)
     depth = DECKS[name][1]
-    e = rtjax.render_samples(s, _pixel_centres(s), depth=depth, edges=WIDTH, parts=True)
+    e = rtjax.edge_samples(s, _pixel_centres(s), depth=depth, edges=WIDTH)
     flat = plain(name).reshape(-1, 3)
     # values at pixel centres, shadow edges included (sharp)
     np.testing.assert_allclose(np.asarray(e.centre), flat, rtol=0, atol=1e-9)
@@ -362,11 +362,11 @@ def test_parts_flip_the_nearest_shadow_edge():
     that edge within reach, and its distance to it is what the move needed."""
     s = scene("shadow")
     xy = _pixel_centres(s)
-    e = rtjax.render_samples(s, xy, edges=WIDTH, parts=True)
+    e = rtjax.edge_samples(s, xy, edges=WIDTH)
     centre, flipped, sx = np.asarray(e.centre), np.asarray(e.flipped), np.asarray(e.shadow_x)
     # every floor pixel's centre: its sphere, from the plain hit test
     o, d = rtjax.camera.rays_through(s.params.eye, s.params.refp, s.params.vang, 32, 32, jnp.asarray(xy.T))
-    on_floor = np.asarray(rtjax.spheres.nearest(o, d, s.params.centers, s.params.radii, jnp.full(1024, -1), 1e-6)[1]) == 1
+    on_floor = np.asarray(rtjax.spheres.nearest(o, d, s.params.centers, s.params.radii, jnp.full(1024, -1), 1e-6, False)[1]) == 1
     floor = on_floor & (np.asarray(e.x) == 0)
     near = floor & (sx < 1)
     lit = near & (centre.sum(1) > flipped.sum(1) + 30)
@@ -393,7 +393,7 @@ def test_parts_flip_the_nearest_shadow_edge():
 def test_parts_need_the_silhouette_mode():
     s = scene("single")
     with pytest.raises(rtjax.RtjaxError, match="edges"):
-        rtjax.render_samples(s, _pixel_centres(s), parts=True)
+        rtjax.edge_samples(s, _pixel_centres(s), edges=0)
 
 
 # --------------------------------------------------------------------------------------
@@ -405,12 +405,11 @@ def test_parts_need_the_silhouette_mode():
 # mode (as in the sections above). These scenes at 96 × 96 pixels are above.
 
 BIG = 96
-render_module = importlib.import_module("rtjax.render")  # the package's `render` is the function
 
 
 def big(name: str) -> rtjax.Scene:
     s = scene(name).resized(BIG)
-    assert s.structure.width * s.structure.height > render_module.EDGE_CHUNK_MIN
+    assert s.structure.width * s.structure.height > EDGE_CHUNK_MIN
     return s
 
 
@@ -434,7 +433,7 @@ def test_every_pixel_an_outline_crosses_is_chosen():
     w, h = s.structure.width, s.structure.height
     ring = pixel_grid(w + 2, h + 2, jnp.array([-0.5, -0.5]))
     keys = rtjax.trace.trace(s.structure, s.params, *rtjax.camera.rays_through(
-        s.params.eye, s.params.refp, s.params.vang, w, h, ring), 0, keyed=True)[1]
+        s.params.eye, s.params.refp, s.params.vang, w, h, ring), 0, keyed=True).key
     near = np.asarray(rtjax.edges.edge_pixels(keys.reshape(h + 2, w + 2), 1))
     u = (np.arange(9) + 0.5) / 9
     sub = np.stack(np.meshgrid(u, u, indexing="xy"), -1).reshape(-1, 2)
