@@ -36,34 +36,20 @@ BLUR_RADIUS = 8
 YCBCR = np.array([[0.299, 0.587, 0.114], [-0.168736, -0.331264, 0.5], [0.5, -0.418688, -0.081312]])
 CHROMA = np.linalg.inv(YCBCR) @ np.diag([0.0, 1.0, 1.0]) @ YCBCR
 LOSSES = ("l2", "huber", "cauchy")
-#: Coarse levels widen the robust loss's scale by this factor: their area-averaged
-#: pixels mix both sides of edges, so residuals of tens of levels are signal there, not
-#: outliers (measured on the sample deck, six starts: at ±3 units the one start the
-#: coarse levels had left 4.9 units off ended 0.038 off, the others unchanged; at ±5,
-#: 4 of 6 within 0.01 against 2). Not with a fitted blur (a photo: noise and JPEG make
-#: outliers at every level; measured 0.100 against 0.091 units on the photo-like deck).
+#: Levels coarser than the image widen the robust loss's scale by this factor (not with
+#: a fitted blur): their area-averaged pixels mix both sides of edges, so residuals of
+#: tens of levels are signal there, not outliers.
 COARSE_SCALE = 3.0
-#: A fit matched at pixel centres ends with a second full-size level on the same
-#: samples whose robust scale is this factor of the fit's (1 level for the default
-#: 10), from where the first stopped (`fitting.solve.prepare_fit`). At the truth such a
-#: level's residuals are the target's rounding alone (≤ ½ level), while the few
-#: samples the sided model cannot match (a silhouette and a shadow edge within
-#: hundredths of a pixel of the centre: the colour traced across one lies across the
-#: other) jump by tens of levels as an edge crosses their centre: at the fit's scale
-#: one such sample outweighs thousands and can hold the solver ~0.01 units off. The
-#: wide scale first, because far from the truth residuals of tens of levels are signal.
+#: A fit matched at pixel centres ends with a refinement on the same samples whose robust
+#: scale is this factor of the fit's (`fitting.problem.Problem`): at the truth its
+#: residuals are the target's rounding alone, and the few samples the sided model cannot
+#: match no longer outweigh the rest.
 EXACT_SCALE = 0.1
-#: ...once the wider level's RMS residual is below this fraction of the fit's scale (3
-#: levels for the default 10), or it converged; straight away where the level before
-#: ended that close (`fitting.solve.level_budget`). Switched only at convergence, one
-#: of six ±3-unit starts on the sample deck ran out of steps 0.032 units off; the
-#: narrow scale throughout moved colours that start far off too slowly (notebook 02's
-#: quick fit: 0.30 off in 8 steps).
+#: ...which takes over once the wider level's RMS residual is below this fraction of the
+#: fit's scale, or it converged (`fitting.solve.level_budget`).
 NARROW_BELOW = 0.3
 #: With a fitted blur (a photo-like target), edges are found on the target blurred by
-#: this many pixels (`make_levels`' `denoise`, the coarse levels' samples): JPEG
-#: blocks and noise made 41 % of the photo-like sample deck's pixels look like edge
-#: pixels, 25 % blurred.
+#: this many pixels (`make_levels`' `denoise`): noise and JPEG blocks would look like edges.
 DENOISE = 1.0
 
 
@@ -120,12 +106,11 @@ def schedule_widths(width: int, levels: int | Sequence[int] | None, blurred: boo
 
     Default: an eighth, a quarter and the full width (a quarter, a half and the full
     width where an eighth would be below 48 pixels): the coarse levels do the
-    travelling, cheaply, and the full-size level, matched at pixel centres, the rest
-    (measured on the sample deck, README "How well it works"). `blurred` (a fitted
-    blur, whose full-size level renders the whole image through `camera`): three
-    levels halving the width, so that a half-size level brings it closer first. An int k
-    gives k levels halving the width (none below 48 pixels); a sequence is taken as
-    given (sorted, capped at the full width)."""
+    travelling, cheaply, and the full-size level, matched at pixel centres, the rest.
+    `blurred` (a fitted blur, whose full-size level renders the whole image through
+    `camera`): three levels halving the width, so that a half-size level brings it
+    closer first. An int k gives k levels halving the width (none below 48 pixels); a
+    sequence is taken as given (sorted, capped at the full width)."""
     if levels is None and blurred:
         levels = 3
     if levels is None:
@@ -355,13 +340,7 @@ class Objective:
         level is `whole`: the whole image, each pixel box-filtered at its edges
         (`rtjax.render`'s silhouette-aware mode, 1 pixel wide), through `camera` (the
         blur a true Gaussian, in the response's order, and JPEG's chroma blur), looked
-        at in the level's pixels.
-        Measured on the sample deck's photo-like target (README), from ±3 units, two
-        starts each: largest centre error 0.037–0.038 units (γ 1/1.1) and 0.067–0.068
-        (γ 1.1) with all five nuisance parameters; the mean of renders at three points
-        σ√2 around each sample, which this replaced, left 0.126–0.129 and 0.084 and
-        fitted σ 0.79 for 1.04, at twice the cost per step (a whole image renders in the
-        cheaper keyed mode)."""
+        at in the level's pixels."""
         scene = rtjax.Scene(self.selection.scene.structure, self.selection.params(y["scene"]))
         nuisance = y.get("nuisance", {})
 

@@ -1,5 +1,5 @@
 """What a fit leaves behind: the summary table, the JSON report, the convergence plot,
-the fitted deck and the fitted image."""
+the fitted deck and the fitted image; for a multi-start fit, its summary line and report entry."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import numpy as np
 import rtjax
 
 from .objective import NUISANCE_START
-from .solve import FitResult
+from .solve import FitResult, MultiStartResult
 
 
 def _fmt(v) -> str:
@@ -122,3 +122,35 @@ def save_outputs(result: FitResult, outdir: str, stem: str, deck_path: str | Non
     write_json(paths["report"], report_dict(result, deck_path, target_path))
     plot_convergence(result, paths["plot"])
     return paths
+
+
+def summary_line(result: MultiStartResult) -> str:
+    """One line: starts, devices, how many converged, which was kept."""
+    devices = f"{result.devices} device{'s' if result.devices != 1 else ''}"
+    return (f"multi-start: {result.starts} starts on {devices}, {result.converged} of {result.starts} converged; "
+            f"kept start {result.index} (loss {result.losses[result.index]:.4e}, {result.results[result.index]})")
+
+
+def report_entry(result: MultiStartResult) -> dict:
+    """The multi-start part of the JSON report."""
+    return {
+        "starts": result.starts,
+        "devices": result.devices,
+        "converged": result.converged,
+        "kept": result.index,
+        "losses": result.losses,
+        "results": result.results,
+        "start_values": [result.best.selection.values(s.params) for s in result.start_scenes],
+        "seconds": result.times["total"],
+    }
+
+
+def add_to_report(path: str, result: MultiStartResult) -> None:
+    """Add `report_entry` to a fit's JSON report (written by `save_outputs`)."""
+    with open(path) as f:
+        data = json.load(f)
+    entry = report_entry(result)
+    entry["start_values"] = [{k: np.asarray(v).tolist() if not isinstance(v, tuple) else "texels"
+                              for k, v in values.items()} for values in entry["start_values"]]
+    data["multistart"] = entry
+    write_json(path, data)

@@ -222,7 +222,7 @@ class _Progress:
 def cmd_fit(args) -> int:
     """`rtjax fit`: fit a deck's free parameters to a target image, write the results."""
     import fitting
-    from fitting.report import save_outputs, table_text
+    from fitting.report import add_to_report, save_outputs, summary_line, table_text
 
     from .deck import load_deck
 
@@ -236,9 +236,7 @@ def cmd_fit(args) -> int:
     outdir, stem = os.path.dirname(out) or ".", os.path.splitext(os.path.basename(out))[0]
     import jax
 
-    progress = _Progress(args.max_steps, args.quiet or jax.process_index() != 0)
-    options = dict(
-        spheres=args.spheres,
+    options = fitting.FitOptions(
         solver=args.solver,
         max_steps=args.max_steps,
         levels=args.levels if args.levels is None or len(args.levels) > 1 else args.levels[0],
@@ -250,24 +248,24 @@ def cmd_fit(args) -> int:
         nuisance=args.nuisance.split(",") if args.nuisance else (),
         mask=args.mask,
         assignment_order=args.assignment_order,
-        callback=progress,
     )
+    progress = _Progress(args.max_steps, args.quiet or jax.process_index() != 0)
     several = args.starts > 1 or args.devices != 1
     try:
         if several:
             multi = fitting.fit_multistart(frame.scene, args.target, args.free, starts=args.starts, seed=args.seed,
-                                           spread=args.spread, devices=args.devices, **options)
+                                           spread=args.spread, devices=args.devices, spheres=args.spheres,
+                                           options=options, callback=progress)
             result = multi.best
         else:
-            result = fitting.fit(frame.scene, args.target, args.free, **options)
+            result = fitting.fit(frame.scene, args.target, args.free, spheres=args.spheres, options=options,
+                                 callback=progress)
     finally:
         progress.close()
     if jax.process_index() != 0:  # several hosts: the first one writes and reports
         return 0 if result.converged else 1
     paths = save_outputs(result, outdir, stem, args.deck, args.target, image_name=f"{stem}.sunimg")
     if several:
-        from fitting.multistart import add_to_report, summary_line
-
         add_to_report(paths["report"], multi)
     print(table_text(result))
     if several:

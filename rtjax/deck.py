@@ -1,24 +1,30 @@
-"""The deck language (DECK.md §1): parser with `file:line:` errors, and the writer.
+"""The deck language (DECK.md §1): its commands, the parser with `file:line:` errors, and the writer.
 
-A deck is read line by line into a running state; every `rend` takes a snapshot of
-that state as a `Frame` (a `Scene` and its output name). The writer turns scenes back
-into deck text such that parse → write → parse gives the same scenes.
+Every command is declared once, in `COMMANDS`: its arguments (name, kind, range, the scene
+field each gives) and its meaning. The parser reads a deck line by line against that
+table and describes each `rend` by the lines in effect there (`rtjax.assemble.Snapshot`);
+`rtjax.assemble` reads the textures they name and builds each frame's `Scene`. The writer
+turns scenes back into deck lines from the same table, such that parse → write → parse
+gives the same scenes.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import os
 import re
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
-import jax.numpy as jnp
+import jax
 import numpy as np
 
+from .assemble import SPHERE_DEFAULTS, Line, Snapshot, Textures, Value, assemble
 from .camera import image_height
 from .errors import DeckError, RtjaxError
-from .scene import GLASS, MIRROR, OPAQUE, TEXTURE, Params, Scene, Structure
+from .scene import TEXTURE, Scene
 
 # Ordinary float syntax, ASCII digits only (`\d` alone would accept any Unicode digit).
 _NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?", re.ASCII)
@@ -32,24 +38,160 @@ _F32_MAX = float(np.finfo(np.float32).max)
 #: The largest image side a deck may ask for (32-bit indices, the Sun raster header).
 MAX_SIDE = 2**31 - 1
 
-#: command → (argument names for messages); `tmap` and `rend` take a file name.
-COMMANDS: dict[str, tuple[str, ...]] = {
-    "sphe": ("xc", "yc", "zc", "r"),
-    "opaq": ("dR", "dG", "dB", "ks", "beta"),
-    "mirr": (),
-    "trpa": ("kt", "n", "ks", "beta"),
-    "tmap": ("file", "[ks beta]"),
-    "plig": ("lx", "ly", "lz", "LR", "LG", "LB"),
-    "back": ("BR", "BG", "BB"),
-    "elig": ("ke",),
-    "eyep": ("xv", "yv", "zv"),
-    "refp": ("xf", "yf", "zf"),
-    "vang": ("ha", "va"),
-    "size": ("is",),
-    "rend": ("file",),
-    "quit": (),
-}
-MATERIALS = ("opaq", "mirr", "trpa", "tmap")
+
+def _show(text: str) -> str:
+    """A token as it reads in a one-line message: as is if printable, else escaped."""
+    return text if text.isprintable() else repr(text)[1:-1]
+
+
+def _to_f32(value: float) -> float:
+    """`value` rounded to float32 (inf when out of range), back as a Python float."""
+    with np.errstate(over="ignore"):
+        return float(np.float32(value))
+
+
+# -- the commands ----------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Range:
+    """Where a number argument must lie.
+
+    Attributes:
+        test: whether a value lies there (the value as stored: rounded to float32 for a
+            number, as written for a count).
+        expected: the range as a message says it: "<name> must be <expected>, found ...".
+    """
+
+    test: Callable[[float], bool]
+    expected: str
+
+
+UNIT = Range(lambda x: 0 <= x <= 1, "in [0, 1]")
+LEVEL = Range(lambda x: 0 <= x <= 255, "in [0, 255]")
+POSITIVE = Range(lambda x: x > 0, "> 0")
+AT_LEAST_ONE = Range(lambda x: x >= 1, "≥ 1")
+ANGLE = Range(lambda x: 0 < x < 180, "in (0, 180) degrees")
+SIDE = Range(lambda x: 1 <= x <= MAX_SIDE and x == int(x), f"an integer in [1, {MAX_SIDE}]")
+
+#: Argument kinds: a number (rounded to float32, as scenes store it), a count (an
+#: integer, read as written), a file name (one word).
+NUMBER, COUNT, FILE = "number", "count", "file name"
+
+
+@dataclasses.dataclass(frozen=True)
+class Arg:
+    """One argument of a command.
+
+    Attributes:
+        name: its name in messages (`xc`, `dR`, `file`).
+        field: the scene field it gives (see `rtjax.assemble.Line`); consecutive
+            arguments of one field give it together, as a vector (xc yc zc → `centers`).
+        range: where its value must lie; None: any finite number, or any file name.
+        kind: `NUMBER`, `COUNT` or `FILE`.
+        default: its value when left out. Arguments with a default are optional; they
+            end the line and are given all or none (tmap's `[ks beta]`).
+    """
+
+    name: str
+    field: str
+    range: Range | None = None
+    kind: str = NUMBER
+    default: float | None = None
+
+
+#: What a command's line does: adds a sphere, completes the sphere above it, adds a
+#: light, replaces a setting, renders a frame, stops reading.
+SPHERE, MATERIAL, LIGHT, STATE, REND, QUIT = "sphere", "material", "light", "state", "rend", "quit"
+
+
+@dataclasses.dataclass(frozen=True)
+class Command:
+    """One deck command.
+
+    Attributes:
+        name: its keyword.
+        role: what a line of it does (`SPHERE`, `MATERIAL`, `LIGHT`, `STATE`, `REND`, `QUIT`).
+        meaning: what it says, in a short phrase.
+        args: its arguments, in order.
+        initial: for a setting, its argument values before any line gives them; None: a
+            `rend` needs a line of it first.
+    """
+
+    name: str
+    role: str
+    meaning: str
+    args: tuple[Arg, ...] = ()
+    initial: tuple[float, ...] | None = None
+
+    @property
+    def counts(self) -> tuple[int, int]:
+        """The argument counts a line may have: without its optional arguments, with them."""
+        return sum(a.default is None for a in self.args), len(self.args)
+
+    @property
+    def ranged(self) -> list[Arg]:
+        """The arguments with a range, in the order they are checked: range by range, in
+        the order the arguments first use them (trpa: kt and ks in [0, 1], then n and beta ≥ 1)."""
+        ranged = [a for a in self.args if a.range is not None]
+        ranges = [a.range for a in ranged]
+        return sorted(ranged, key=lambda a: ranges.index(a.range))
+
+    def miscount(self, args: Sequence[str]) -> str:
+        """The message for a line of this command with the wrong number of arguments `args`.
+
+        The table has three shapes: numbers ("takes 4 numbers (xc yc zc r)"), one file
+        name, and a file name with an optional group of numbers (tmap).
+        """
+        found = f"found {len(args)}"
+        shown = f": {' '.join(map(_show, args))}" if args else ""
+        if not self.args:
+            return f"{self.name} takes no arguments, {found}{shown}"
+        names = " ".join(a.name for a in self.args if a.default is None)
+        optional = [a.name for a in self.args if a.default is not None]
+        if optional:
+            names += f" [{' '.join(optional)}]"
+        if all(a.kind != FILE for a in self.args):
+            plural = "number" if len(self.args) == 1 else "numbers"
+            return f"{self.name} takes {len(self.args)} {plural} ({names}), {found}{shown}"
+        takes = f"a file name and optionally {len(optional)} numbers ({names})" if optional else "1 file name"
+        return f"{self.name} takes {takes}, {found} arguments{shown}"
+
+
+def _numbers(names: str, field: str, range: Range | None = None) -> tuple[Arg, ...]:
+    """Number arguments (`names`, blank-separated) that give `field` together."""
+    return tuple(Arg(name, field, range) for name in names.split())
+
+
+#: The deck language: every command by keyword, in the order messages list them.
+COMMANDS: dict[str, Command] = {c.name: c for c in (
+    Command("sphe", SPHERE, "a sphere", (*_numbers("xc yc zc", "centers"), Arg("r", "radii", POSITIVE))),
+    Command("opaq", MATERIAL, "its material: opaque Phong",
+            (*_numbers("dR dG dB", "diffuse", UNIT), Arg("ks", "ks", UNIT), Arg("beta", "beta", AT_LEAST_ONE))),
+    Command("mirr", MATERIAL, "its material: perfect mirror"),
+    Command("trpa", MATERIAL, "its material: transparent, refracting",
+            (Arg("kt", "kt", UNIT), Arg("n", "ior", AT_LEAST_ONE), Arg("ks", "ks", UNIT), Arg("beta", "beta", AT_LEAST_ONE))),
+    Command("tmap", MATERIAL, "its material: opaque with a texture as diffuse colour",
+            (Arg("file", "texture", kind=FILE),
+             Arg("ks", "ks", UNIT, default=0.0), Arg("beta", "beta", AT_LEAST_ONE, default=1.0))),
+    Command("plig", LIGHT, "adds a parallel light; (lx, ly, lz) points toward the light",
+            (*_numbers("lx ly lz", "light_dirs"), *_numbers("LR LG LB", "light_colors", LEVEL))),
+    Command("back", STATE, "background colour", _numbers("BR BG BB", "background", LEVEL), initial=(0.0, 0.0, 0.0)),
+    Command("elig", STATE, "ambient coefficient", _numbers("ke", "ke", UNIT), initial=(0.0,)),
+    Command("eyep", STATE, "the eye", _numbers("xv yv zv", "eye")),
+    Command("refp", STATE, "the point the eye looks at", _numbers("xf yf zf", "refp")),
+    Command("vang", STATE, "horizontal and vertical view angles (degrees)", _numbers("ha va", "vang", ANGLE)),
+    Command("size", STATE, "image width in pixels", (Arg("is", "width", SIDE, kind=COUNT),)),
+    Command("rend", REND, "render the scene as it stands into `file`", (Arg("file", "output", kind=FILE),)),
+    Command("quit", QUIT, "stop reading"),
+)}  # fmt: skip
+
+_MATERIALS = tuple(c.name for c in COMMANDS.values() if c.role == MATERIAL)
+
+
+def _fields(command: Command, values: Sequence[Value]) -> dict[str, Value]:
+    """A line's argument values (in order) by the field they give: alone, or as a tuple."""
+    pairs = zip(command.args, values)
+    grouped = {field: [v for _, v in group] for field, group in itertools.groupby(pairs, key=lambda p: p[0].field)}
+    return {field: v[0] if len(v) == 1 else tuple(v) for field, v in grouped.items()}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,82 +211,106 @@ class Deck:
     frames: tuple[Frame, ...]
 
 
-@dataclasses.dataclass
-class _Sphere:
-    line: int
-    center: tuple[float, float, float]
-    radius: float
-    kind: str | None = None
-    material_line: int = 0
-    diffuse: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    ks: float = 0.0
-    beta: float = 1.0
-    kt: float = 0.0
-    ior: float = 1.0
-    texture: str = ""
-
-
-def _show(text: str) -> str:
-    """A token as it reads in a one-line message: as is if printable, else escaped."""
-    return text if text.isprintable() else repr(text)[1:-1]
-
-
-def _to_f32(value: float) -> float:
-    """`value` rounded to float32 (inf when out of range), back as a Python float."""
-    with np.errstate(over="ignore"):
-        return float(np.float32(value))
-
-
+# -- reading -----------------------------------------------------------------------------------
 class _Parser:
-    def __init__(self, name: str, folder: str, load_texture: Callable[[str], np.ndarray] | None):
+    """Reads a deck's lines against `COMMANDS` into the `Snapshot` of each `rend`.
+
+    Arguments:
+        name: the deck's name, for messages.
+        read_texture: called with each `tmap` file name once its line passed every other
+            check; an `RtjaxError` it raises is reported at that line.
+    """
+
+    def __init__(self, name: str, read_texture: Callable[[str], None]):
         self.name = name
-        self.folder = folder
-        self.load_texture = load_texture
-        self.spheres: list[_Sphere] = []
-        self.lights: list[tuple[tuple[float, ...], tuple[float, ...]]] = []
-        self.back = (0.0, 0.0, 0.0)
-        self.ke = 0.0
-        self.eye: tuple[float, ...] | None = None
-        self.refp: tuple[float, ...] | None = None
-        self.vang: tuple[float, ...] | None = None
-        self.size: int | None = None
-        self.set_at: dict[str, int] = {}
-        self.textures: dict[str, np.ndarray] = {}
-        self.frames: list[Frame] = []
+        self.read_texture = read_texture
+        self.spheres: list[tuple[Line, Line]] = []  # complete: sphe line, material line
+        self.pending: Line | None = None  # a sphe line still without its material line
+        self.lights: list[Line] = []
+        self.state = {c.name: Line(c.name, 0, _fields(c, c.initial)) for c in COMMANDS.values() if c.initial is not None}
+        self.snapshots: list[Snapshot] = []
         self.line = 0
-        self.cmd = ""
-        self.texts: dict[str, str] = {}  # argument name → text, for messages
+        self.command = ""
+        self.texts: dict[str, str] = {}  # argument name → its text on this line, for messages
 
-    # -- errors and argument checking -------------------------------------------------
-    def error(self, message: str, line: int | None = None) -> DeckError:
-        return DeckError(self.name, self.line if line is None else line, message)
+    def parse(self, text: str) -> list[Snapshot]:
+        """The snapshot of every `rend` in `text`; a `DeckError` at the first bad line."""
+        for self.line, raw in enumerate(_LINE_BREAK.split(text), start=1):
+            tokens = raw.split("#", 1)[0].split()
+            if not tokens:
+                continue
+            command = COMMANDS.get(tokens[0])
+            if command is None:
+                raise self.error(f"unknown command {tokens[0]!r} (expected one of {', '.join(COMMANDS)})")
+            if command.role == QUIT:
+                self.read(command, tokens[1:])
+                break
+            self.step(command, tokens[1:])
+        self.close_sphere("the end of the deck")
+        return self.snapshots
 
-    def numbers(self, args: list[str], names: Sequence[str], f32: bool = True) -> list[float]:
-        if len(args) != len(names):
-            if not names:
-                raise self.error(f"{self.cmd} takes no arguments, found {len(args)}: {' '.join(map(_show, args))}")
-            plural = "number" if len(names) == 1 else "numbers"
-            raise self.error(
-                f"{self.cmd} takes {len(names)} {plural} ({' '.join(names)}), found {len(args)}"
-                + (f": {' '.join(map(_show, args))}" if args else "")
-            )
-        return [self.number(a, n, f32) for a, n in zip(args, names)]
+    def step(self, command: Command, args: list[str]) -> None:
+        """One line: its arguments read, then what its command does with them."""
+        if command.role == SPHERE:
+            self.close_sphere(f"the sphe on line {self.line}")  # before this line's own arguments
+        line = self.read(command, args)
+        if command.role == SPHERE:
+            self.pending = line
+        elif command.role == MATERIAL:
+            sphere = self.pending_sphere()
+            if "texture" in line.values:
+                try:
+                    self.read_texture(line.values["texture"])
+                except RtjaxError as e:
+                    raise self.error(f"{command.name}: {e}") from None
+            self.spheres.append((sphere, line))
+            self.pending = None
+        elif command.role == LIGHT:
+            self.lights.append(line)
+        elif command.role == STATE:
+            self.state[command.name] = line
+        elif command.role == REND:
+            self.close_sphere(f"the rend on line {self.line}")
+            self.check_camera()
+            self.snapshots.append(Snapshot(tuple(self.spheres), tuple(self.lights), dict(self.state), line))
 
-    def number(self, text: str, name: str, f32: bool = True) -> float:
-        """A number as the scene stores it: rounded to float32, finite (`f32`), or as written."""
-        self.texts[name] = text
+    # -- arguments: count, syntax, ranges ---------------------------------------------------------
+    def read(self, command: Command, args: list[str]) -> Line:
+        """A line of `command` with arguments `args`, checked against its table entry.
+
+        Checked in turn: the count, each number's syntax, the light vector (plig), the ranges.
+        """
+        self.command, self.texts = command.name, {}
+        if len(args) not in command.counts:
+            raise self.error(command.miscount(args))
+        values = {a.name: a.default for a in command.args}
+        for arg, text in zip(command.args, args):
+            values[arg.name] = text if arg.kind == FILE else self.number(arg, text)
+        if command.role == LIGHT:
+            self.light_not_zero(command, values)
+        for arg in command.ranged:
+            value = values[arg.name]
+            if not arg.range.test(value):
+                raise self.error(f"{command.name}: {arg.name} must be {arg.range.expected}, found {self.found(arg.name, value)}")
+        ordered = [int(values[a.name]) if a.kind == COUNT else values[a.name] for a in command.args]
+        return Line(command.name, self.line, _fields(command, ordered))
+
+    def number(self, arg: Arg, text: str) -> float:
+        """`text` as the value of `arg`: finite, and rounded to float32 unless a count."""
+        self.texts[arg.name] = text
+        where = f"{self.command}: {arg.name}"
         if _NONFINITE.fullmatch(text):
-            raise self.error(f"{self.cmd}: {name} must be a finite number, found {_show(text)}")
+            raise self.error(f"{where} must be a finite number, found {_show(text)}")
         if not _NUMBER.fullmatch(text):
-            raise self.error(f"{self.cmd}: {name} must be a number, found {_show(text)}")
+            raise self.error(f"{where} must be a number, found {_show(text)}")
         value = float(text)
-        if not f32:
+        if arg.kind == COUNT:
             if not math.isfinite(value):
-                raise self.error(f"{self.cmd}: {name} must be a finite number, found {_show(text)}")
+                raise self.error(f"{where} must be a finite number, found {_show(text)}")
             return value
         if not math.isfinite(_to_f32(value)):
             raise self.error(
-                f"{self.cmd}: {name} must be a finite number within float32 range (|x| ≤ {_F32_MAX:.7g}), found {_show(text)}"
+                f"{where} must be a finite number within float32 range (|x| ≤ {_F32_MAX:.7g}), found {_show(text)}"
             )
         return _to_f32(value)
 
@@ -155,212 +321,51 @@ class _Parser:
             return f"{value:g}"
         return _show(text) if float(text) == value else f"{_show(text)} (= {value:g} in float32)"
 
-    def check(self, ok: bool, name: str, value: float, expected: str) -> None:
-        if not ok:
-            raise self.error(f"{self.cmd}: {name} must be {expected}, found {self.found(name, value)}")
+    def error(self, message: str, line: int | None = None) -> DeckError:
+        return DeckError(self.name, self.line if line is None else line, message)
 
-    def unit(self, values, names):
-        for v, n in zip(values, names):
-            self.check(0 <= v <= 1, n, v, "in [0, 1]")
+    # -- the rules that are not ranges ------------------------------------------------------------
+    def light_not_zero(self, command: Command, values: Mapping[str, float]) -> None:
+        """A light's vector must not be zero (as stored); checked before its colour's ranges."""
+        names = [a.name for a in command.args if a.field == "light_dirs"]
+        if all(values[n] == 0 for n in names):
+            found = " ".join(self.found(n, values[n]) for n in names)
+            raise self.error(f"{command.name}: the light vector ({' '.join(names)}) must not be zero, found {found}")
 
-    def level(self, values, names):
-        for v, n in zip(values, names):
-            self.check(0 <= v <= 255, n, v, "in [0, 255]")
-
-    # -- commands ---------------------------------------------------------------------
-    def pending_sphere(self) -> _Sphere:
-        """The sphere a material line applies to (the last one, still without a material)."""
+    def pending_sphere(self) -> Line:
+        """The sphe line a material line completes: the last one, still without a material."""
+        if self.pending is not None:
+            return self.pending
         if not self.spheres:
-            raise self.error(f"{self.cmd} has no sphere above it (a material line follows a sphe line)")
-        s = self.spheres[-1]
-        if s.kind is not None:
-            raise self.error(
-                f"{self.cmd}: the sphere on line {s.line} already has a material ({s.kind} on line {s.material_line})"
-            )
-        return s
+            raise self.error(f"{self.command} has no sphere above it (a material line follows a sphe line)")
+        sphere, material = self.spheres[-1]
+        raise self.error(
+            f"{self.command}: the sphere on line {sphere.number} already has a material"
+            f" ({material.command} on line {material.number})"
+        )
 
-    def material_target(self) -> _Sphere:
-        s = self.pending_sphere()
-        s.kind, s.material_line = self.cmd, self.line
-        return s
+    def close_sphere(self, before: str) -> None:
+        """A sphe line must have its material line before `before` (a sphe, a rend, the end)."""
+        if self.pending is not None:
+            expected = f"{', '.join(_MATERIALS[:-1])} or {_MATERIALS[-1]}"
+            message = f"sphe has no material line after it (expected {expected} before {before})"
+            raise self.error(message, self.pending.number)
 
-    def require_material(self, before: str) -> None:
-        if self.spheres and self.spheres[-1].kind is None:
-            s = self.spheres[-1]
-            raise self.error(
-                f"sphe has no material line after it (expected opaq, mirr, trpa or tmap before {before})", s.line
-            )
-
-    def do_sphe(self, a):
-        self.require_material(f"the sphe on line {self.line}")
-        x, y, z, r = self.numbers(a, COMMANDS["sphe"])
-        self.check(r > 0, "r", r, "> 0")
-        self.spheres.append(_Sphere(self.line, (x, y, z), r))
-
-    def do_opaq(self, a):
-        dr, dg, db, ks, beta = self.numbers(a, COMMANDS["opaq"])
-        self.unit((dr, dg, db, ks), ("dR", "dG", "dB", "ks"))
-        self.check(beta >= 1, "beta", beta, "≥ 1")
-        s = self.material_target()
-        s.diffuse, s.ks, s.beta = (dr, dg, db), ks, beta
-
-    def do_mirr(self, a):
-        self.numbers(a, ())
-        self.material_target()
-
-    def do_trpa(self, a):
-        kt, n, ks, beta = self.numbers(a, COMMANDS["trpa"])
-        self.unit((kt, ks), ("kt", "ks"))
-        self.check(n >= 1, "n", n, "≥ 1")
-        self.check(beta >= 1, "beta", beta, "≥ 1")
-        s = self.material_target()
-        s.kt, s.ior, s.ks, s.beta = kt, n, ks, beta
-
-    def do_tmap(self, a):
-        if len(a) not in (1, 3):
-            raise self.error(
-                f"tmap takes a file name and optionally 2 numbers (file [ks beta]), found {len(a)} arguments"
-                + (f": {' '.join(map(_show, a))}" if a else "")
-            )
-        ks, beta = self.numbers(a[1:], ("ks", "beta")) if len(a) == 3 else (0.0, 1.0)
-        self.unit((ks,), ("ks",))
-        self.check(beta >= 1, "beta", beta, "≥ 1")
-        self.pending_sphere()  # a material line in the wrong place is reported before its file
-        name = a[0]
-        if name not in self.textures:
-            path = os.path.join(self.folder, name)
-            if self.load_texture is None:
-                raise self.error(f"tmap: textures cannot be loaded here (texture {name!r})")
-            try:
-                texture = np.asarray(self.load_texture(path))
-            except (RtjaxError, OSError, ValueError, MemoryError) as e:
-                reason = " ".join(str(e).split()) or type(e).__name__
-                raise self.error(f"tmap: cannot read texture {name!r}: {reason}") from None
-            if texture.ndim != 3 or texture.shape[2] != 3 or texture.shape[0] < 1 or texture.shape[1] < 1:
-                raise self.error(f"tmap: texture {name!r} has shape {texture.shape}, expected (height, width, 3)")
-            self.textures[name] = texture
-        s = self.material_target()
-        s.ks, s.beta, s.texture = ks, beta, name
-
-    def do_plig(self, a):
-        v = self.numbers(a, COMMANDS["plig"])
-        if v[0] == v[1] == v[2] == 0:
-            found = " ".join(self.found(n, x) for n, x in zip(COMMANDS["plig"][:3], v[:3]))
-            raise self.error(f"plig: the light vector (lx ly lz) must not be zero, found {found}")
-        self.level(v[3:], COMMANDS["plig"][3:])
-        self.lights.append((tuple(v[:3]), tuple(v[3:])))
-
-    def do_back(self, a):
-        v = self.numbers(a, COMMANDS["back"])
-        self.level(v, COMMANDS["back"])
-        self.back = tuple(v)
-
-    def do_elig(self, a):
-        (ke,) = self.numbers(a, COMMANDS["elig"])
-        self.unit((ke,), ("ke",))
-        self.ke = ke
-
-    def do_eyep(self, a):
-        self.eye = tuple(self.numbers(a, COMMANDS["eyep"]))
-        self.set_at["eyep"] = self.line
-
-    def do_refp(self, a):
-        self.refp = tuple(self.numbers(a, COMMANDS["refp"]))
-        self.set_at["refp"] = self.line
-
-    def do_vang(self, a):
-        v = self.numbers(a, COMMANDS["vang"])
-        for x, n in zip(v, COMMANDS["vang"]):
-            self.check(0 < x < 180, n, x, "in (0, 180) degrees")
-        self.vang = tuple(v)
-
-    def do_size(self, a):
-        (n,) = self.numbers(a, COMMANDS["size"], f32=False)  # a count, not a float32 parameter
-        self.check(n >= 1 and n == int(n) and n <= MAX_SIDE, "is", n, f"an integer in [1, {MAX_SIDE}]")
-        self.size = int(n)
-
-    def do_rend(self, a):
-        if len(a) != 1:
-            raise self.error(
-                f"rend takes 1 file name, found {len(a)} arguments" + (f": {' '.join(map(_show, a))}" if a else "")
-            )
-        self.require_material(f"the rend on line {self.line}")
-        missing = [c for c, v in (("eyep", self.eye), ("refp", self.refp), ("vang", self.vang), ("size", self.size)) if v is None]
+    def check_camera(self) -> None:
+        """A rend needs every setting without a default, eyep ≠ refp, and an image within MAX_SIDE."""
+        missing = [c.name for c in COMMANDS.values() if c.role == STATE and c.name not in self.state]
         if missing:
             raise self.error(f"rend: the camera is incomplete: {', '.join(missing)} must come before rend")
-        if self.eye == self.refp:  # compared as stored (float32), where the view direction is computed
-            raise self.error(
-                f"rend: eyep (line {self.set_at['eyep']}) equals refp (line {self.set_at['refp']}): the view has no direction"
-            )
-        ha, va = self.vang
+        eyep, refp = self.state["eyep"], self.state["refp"]
+        if eyep.values["eye"] == refp.values["refp"]:  # compared as stored (float32), where the view direction is computed
+            raise self.error(f"rend: eyep (line {eyep.number}) equals refp (line {refp.number}): the view has no direction")
+        (ha, va), size = self.state["vang"].values["vang"], self.state["size"].values["width"]
         try:
-            height = image_height(self.size, ha, va)
+            height = image_height(size, ha, va)
         except OverflowError:
             height = MAX_SIDE + 1
         if height > MAX_SIDE:
-            raise self.error(
-                f"rend: size {self.size} with vang {ha:g} {va:g} makes the image taller than {MAX_SIDE} pixels"
-            )
-        self.frames.append(Frame(self.snapshot(), a[0], self.line))
-
-    def snapshot(self) -> Scene:
-        sp = self.spheres
-        kinds = tuple(s.kind for s in sp)
-        tex_names = tuple(s.texture for s in sp if s.kind == TEXTURE)
-        textures = tuple(self.textures[t] for t in tex_names)
-        ha, va = self.vang
-        structure = Structure(
-            kinds=kinds,
-            n_lights=len(self.lights),
-            width=self.size,
-            height=image_height(self.size, ha, va),
-            texture_shapes=tuple(t.shape[:2] for t in textures),
-            texture_files=tex_names,
-        )
-
-        def arr(values, shape):
-            return np.asarray(values, np.float32).reshape(shape)
-
-        n, nl = len(sp), len(self.lights)
-        params = Params(
-            centers=arr([s.center for s in sp], (n, 3)),
-            radii=arr([s.radius for s in sp], (n,)),
-            diffuse=arr([s.diffuse for s in sp], (n, 3)),
-            ks=arr([s.ks for s in sp], (n,)),
-            beta=arr([s.beta for s in sp], (n,)),
-            kt=arr([s.kt for s in sp], (n,)),
-            ior=arr([s.ior for s in sp], (n,)),
-            light_dirs=arr([l[0] for l in self.lights], (nl, 3)),
-            light_colors=arr([l[1] for l in self.lights], (nl, 3)),
-            background=arr(self.back, (3,)),
-            ke=arr(self.ke, ()),
-            eye=arr(self.eye, (3,)),
-            refp=arr(self.refp, (3,)),
-            vang=arr(self.vang, (2,)),
-            textures=tuple(np.asarray(t, np.float32) for t in textures),
-        )
-        params = params.astype(jnp.float32)
-        return Scene(structure, params)
-
-    # -- the loop -----------------------------------------------------------------------
-    def parse(self, text: str) -> tuple[Frame, ...]:
-        for self.line, raw in enumerate(_LINE_BREAK.split(text), start=1):
-            tokens = raw.split("#", 1)[0].split()
-            if not tokens:
-                continue
-            self.cmd, args = tokens[0], tokens[1:]
-            self.texts = {}
-            if self.cmd == "quit":
-                if args:
-                    raise self.error(f"quit takes no arguments, found {len(args)}: {' '.join(map(_show, args))}")
-                break
-            handler = getattr(self, "do_" + self.cmd, None) if self.cmd in COMMANDS else None
-            if handler is None:
-                raise self.error(f"unknown command {self.cmd!r} (expected one of {', '.join(COMMANDS)})")
-            handler(args)
-        self.cmd = "end of deck"
-        self.require_material("the end of the deck")
-        return tuple(self.frames)
+            raise self.error(f"rend: size {size} with vang {ha:g} {va:g} makes the image taller than {MAX_SIDE} pixels")
 
 
 def parse_deck(
@@ -369,12 +374,30 @@ def parse_deck(
     folder: str = ".",
     load_texture: Callable[[str], np.ndarray] | None = None,
 ) -> Deck:
-    """Parse deck text; `name` appears in error messages, `folder` resolves `tmap` files."""
-    return Deck(name, _Parser(name, folder, load_texture).parse(text.lstrip("\ufeff")))
+    """Parse deck text.
+
+    Arguments:
+        text: the deck (a leading byte order mark is skipped).
+        name: the deck's name in error messages.
+        folder: the folder `tmap` file names are relative to.
+        load_texture: reads an image file into a (height, width, 3) array (e.g.
+            `rtjax.load_image`); None: a `tmap` line is an error.
+
+    Returns:
+        The `Deck`, one `Frame` per `rend` line. Raises `DeckError` (`name:line: ...`)
+        on bad input.
+    """
+    textures = Textures(folder, load_texture)
+    snapshots = _Parser(name, textures.read).parse(text.lstrip("\ufeff"))
+    frames = (Frame(assemble(s, textures.arrays), s.rend.values["output"], s.rend.number) for s in snapshots)
+    return Deck(name, tuple(frames))
 
 
 def load_deck(path: str | os.PathLike) -> Deck:
-    """Read and parse a deck file. Raises `DeckError` (`file:line: ...`) on bad input."""
+    """Read and parse a deck file; its `tmap` names are relative to its folder.
+
+    Raises `DeckError` (`file:line: ...`) on bad input.
+    """
     from .images import load_image  # images imports nothing from here; keep start-up light
 
     path = os.fspath(path)
@@ -392,7 +415,7 @@ def load_deck(path: str | os.PathLike) -> Deck:
     return parse_deck(text, name, os.path.dirname(os.path.abspath(path)), load_image)
 
 
-# -- writing ---------------------------------------------------------------------------------
+# -- writing -----------------------------------------------------------------------------------
 def _fmt(x) -> str:
     """The shortest text that reads back to the same float32/float64 value."""
     x = np.asarray(x)[()]  # a NumPy scalar keeps its precision (0-d arrays print as float64)
@@ -410,34 +433,35 @@ def _name(name: str, what: str) -> str:
     return name
 
 
-def _line(cmd: str, *values) -> str:
-    return " ".join([cmd, *(v if isinstance(v, str) else _fmt(v) for v in values)])
+def _write(command: str, values: Mapping[str, Any]) -> str:
+    """The deck line of `command` whose arguments give `values` (by field, as the parser's
+    `Line.values`): numbers as `_fmt` writes them, counts as integers, file names as one word."""
+    words = [command]
+    for field, group in itertools.groupby(COMMANDS[command].args, key=lambda a: a.field):
+        kind, value = next(group).kind, values[field]
+        if kind == FILE:
+            words.append(_name(value, f"{command} {field}"))
+        elif kind == COUNT:
+            words.append(str(value))
+        else:
+            words += [_fmt(x) for x in np.ravel(value)]
+    return " ".join(words)
 
 
 def _scene_parts(scene: Scene) -> tuple[list[str], list[str], list[str]]:
     """Deck lines of a scene in three parts: per sphere (sphe + material), per light, state."""
-    s, p = scene.structure, jax_to_numpy(scene.params)
-    spheres, t = [], 0
+    s, p = scene.structure, jax.tree_util.tree_map(np.asarray, scene.params)
+    whole = {f.name: getattr(p, f.name) for f in dataclasses.fields(p)} | {"width": s.width}
+    texture = s.texture_index()
+    spheres = []
     for i, kind in enumerate(s.kinds):
-        if kind == OPAQUE:
-            material = _line("opaq", *p.diffuse[i], p.ks[i], p.beta[i])
-        elif kind == MIRROR:
-            material = "mirr"
-        elif kind == GLASS:
-            material = _line("trpa", p.kt[i], p.ior[i], p.ks[i], p.beta[i])
-        else:
-            material = _line("tmap", _name(s.texture_files[t], "tmap texture"), p.ks[i], p.beta[i])
-            t += 1
-        spheres.append(_line("sphe", *p.centers[i], p.radii[i]) + "\n" + material)
-    lights = [_line("plig", *d, *c) for d, c in zip(p.light_dirs, p.light_colors)]
-    state = [
-        _line("back", *p.background),
-        _line("elig", p.ke),
-        _line("eyep", *p.eye),
-        _line("refp", *p.refp),
-        _line("vang", *p.vang),
-        _line("size", str(s.width)),
-    ]
+        sphere = {field: whole[field][i] for field in ("centers", "radii", *SPHERE_DEFAULTS)}
+        if kind == TEXTURE:
+            sphere["texture"] = s.texture_files[texture[i]]
+        material = _write(kind, sphere)
+        spheres.append(_write("sphe", sphere) + "\n" + material)
+    lights = [_write("plig", {"light_dirs": d, "light_colors": c}) for d, c in zip(p.light_dirs, p.light_colors)]
+    state = [_write(c.name, whole) for c in COMMANDS.values() if c.role == STATE]
     return spheres, lights, state
 
 
@@ -456,7 +480,7 @@ def format_deck(frames: Sequence[Frame] | Scene, output: str | None = None, head
         spheres, lights, state = _scene_parts(fr.scene)
         if spheres[: len(done_spheres)] != done_spheres or lights[: len(done_lights)] != done_lights:
             raise RtjaxError("a later frame must keep the earlier frames' spheres and lights: decks cannot remove or change them")
-        out += spheres[len(done_spheres) :] + lights[len(done_lights) :] + state + [_line("rend", _name(fr.output, "rend output"))]
+        out += spheres[len(done_spheres) :] + lights[len(done_lights) :] + state + [_write("rend", {"output": fr.output})]
         done_spheres, done_lights = spheres, lights
     out.append("quit")
     return "\n".join(out) + "\n"
@@ -467,9 +491,3 @@ def save_deck(path: str | os.PathLike, frames: Sequence[Frame] | Scene, output: 
     from .atomic import atomic_write
 
     atomic_write(path, format_deck(frames, output, header).encode("utf-8"))
-
-
-def jax_to_numpy(params: Params) -> Params:
-    import jax
-
-    return jax.tree_util.tree_map(np.asarray, params)

@@ -7,8 +7,9 @@ another as soon as the session has collected a test that needs them, so in a run
 the whole suite they use a core the tests before them leave idle; the first test that
 needs them starts every run not begun yet at once (side by side: run alone, this file
 costs about as long as the slowest notebook). Checked: no cell errored, every notebook
-shows images, the fitting notebook's printed errors are small; and the committed
-notebooks are the generator's cells with the outputs of a full run.
+shows images, the fitting notebook's printed errors are small; and each committed
+notebook holds exactly the cells of its jupytext source (notebooks/NAME.py) with the
+outputs of a full run.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import sys
 import tempfile
 import time
 
+import jupytext
 import nbformat
 import pytest
 from conftest import ROOT, Job, kill_group
@@ -41,8 +43,8 @@ def _generator():
 
 
 GEN = _generator()
-NAMES = list(GEN.BUILDERS)
-LONGEST_FIRST = ["02_fit.ipynb", "03_tradeoff.ipynb", "01_render.ipynb"]  # quick mode: ~36, 17, 9 s alone
+NAMES = list(GEN.NAMES)
+LONGEST_FIRST = ["02_fit.ipynb", "03_tradeoff.ipynb", "01_render.ipynb"]  # by their quick runs' length
 assert sorted(LONGEST_FIRST) == sorted(NAMES)
 
 BACKGROUND_FOR = "executed"  # conftest.py: the runs start once a test that needs them is collected
@@ -144,13 +146,14 @@ def test_fit_notebook_recovers_the_truth(executed):
 
 
 @pytest.mark.parametrize("name", NAMES)
-def test_committed_notebook_is_the_generators_with_full_outputs(name):
-    """notebooks/NAME holds exactly the cells scripts/make_notebooks.py writes, every
-    code cell executed in order, no errors, images shown, and not in quick mode."""
+def test_committed_notebook_is_its_source_with_full_outputs(name):
+    """notebooks/NAME holds exactly the cells of its jupytext source notebooks/NAME.py,
+    every code cell executed in order, no errors, images shown, and not in quick mode."""
     committed = nbformat.read(os.path.join(NOTEBOOKS, name), as_version=4)
-    built = GEN.build(name)
-    assert [(c.cell_type, c.source) for c in committed.cells] == [(c.cell_type, c.source) for c in built.cells], (
-        f"notebooks/{name} differs from scripts/make_notebooks.py: run `python scripts/make_notebooks.py {name[:2]}`")
+    source = jupytext.read(GEN.source(name))
+    assert [(c.cell_type, c.source) for c in committed.cells] == [(c.cell_type, c.source) for c in source.cells], (
+        f"notebooks/{name} differs from {os.path.relpath(GEN.source(name), ROOT)}: run "
+        f"`python scripts/make_notebooks.py {name[:2]}` (or `jupytext --sync` if only markdown changed)")
     counts = [c.get("execution_count") for c in committed.cells if c.cell_type == "code"]
     assert counts == list(range(1, len(counts) + 1)), f"not one run top to bottom: {counts}"
     assert not _errors(committed), _errors(committed)

@@ -13,8 +13,9 @@ import rtjax
 from fitting.errors import FitError
 from fitting.objective import (COARSE_SCALE, EXACT_SCALE, Objective, apply_nuisance, camera, edge_band, gaussian_blur, make_levels,
                                nuisance_names, robust, schedule_widths, smooth)
+from fitting.options import FitOptions
+from fitting.problem import Problem
 from fitting.select import Selection
-from fitting.solve import prepare_fit
 
 DECK = """
 sphe -2.3 0 0.7 6
@@ -146,8 +147,7 @@ def test_the_full_size_level_is_exact_by_default_and_takes_every_edge_pixel():
 
     scene = scene_from_text(DECK, size=48)
     target = np.asarray(rtjax.render(scene))
-    args = (target, "centers", None, None, [24, 48], None, 1.0, "cauchy", 10.0, None, (), None, False)
-    pyramid = prepare_fit(scene, *args)[5]
+    pyramid = Problem.build(scene, target, "centers", None, FitOptions(levels=[24, 48])).pyramid
     # the exact level, then its narrow-scale refinement on the same samples
     assert [s.exact for s in pyramid] == [False, True, True]
     assert [float(s.scale) for s in pyramid] == [1.0, 1.0, np.float32(EXACT_SCALE)]
@@ -158,9 +158,10 @@ def test_the_full_size_level_is_exact_by_default_and_takes_every_edge_pixel():
     taken = set((np.floor(xy[:, 1]) * w + np.floor(xy[:, 0])).astype(int))
     assert set(band) <= taken and len(taken) == len(xy)
     # --no-exact-polish: a last box-filtered level after the full-size one; no polish: neither
-    pyramid = prepare_fit(scene, *args, exact_polish=False)[5]
+    pyramid = Problem.build(scene, target, "centers", None, FitOptions(levels=[24, 48], exact_polish=False)).pyramid
     assert [s.exact for s in pyramid] == [False] * 3 and float(pyramid[-1].width) == 1.0
-    assert [s.exact for s in prepare_fit(scene, *args[:6], None, *args[7:])[5]] == [False, False]
+    pyramid = Problem.build(scene, target, "centers", None, FitOptions(levels=[24, 48], polish=None)).pyramid
+    assert [s.exact for s in pyramid] == [False, False]
 
 
 def _blur(image, sigma, radius=8):

@@ -1,0 +1,155 @@
+"""The solvers and their compiled step: optimistix's `init`/`step`/`terminate` for one start.
+
+A fit steps its solver by hand (optimistix's interactive API), one jit-compiled step per
+iteration, so that every iteration can be reported and the best point kept; a step's
+optimistix result comes back as an integer code of this module's own table (`RESULTS`).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.flatten_util
+import jax.numpy as jnp
+import optimistix as optx
+from jaxtyping import Array, Int
+
+from .objective import Objective
+
+#: Levenberg–Marquardt's first trust-region step size on every level (its damping
+#: λ = 1/step; optimistix starts at 1): residuals are in 1/255 units per sample, so λ = 1
+#: damps the first steps into slow gradient descent.
+LM_STEP0 = 10.0
+#: Levenberg–Marquardt's trust region grows (3.5×) after a step whose actual reduction of
+#: the loss is above this share of the predicted one (Moré's 0.75; optimistix asks 0.99).
+LM_GROW_ABOVE = 0.75
+
+
+class _TrustRegion(optx.ClassicalTrustRegion):
+    """optimistix's classical trust region, starting at `LM_STEP0` on every level."""
+
+    def init(self, y, f_info_struct):
+        state = super().init(y, f_info_struct)
+        return eqx.tree_at(lambda s: s.step_size, state, jnp.asarray(LM_STEP0, state.step_size.dtype))
+
+
+def _levenberg_marquardt(rtol: float, atol: float) -> optx.LevenbergMarquardt:
+    lm = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    return eqx.tree_at(lambda s: s.search, lm, _TrustRegion(high_cutoff=LM_GROW_ABOVE))
+
+
+#: The solvers by name, each made from (rtol, atol).
+SOLVERS = {
+    "lm": _levenberg_marquardt,
+    "gn": lambda rtol, atol: optx.GaussNewton(rtol=rtol, atol=atol),
+    "dogleg": lambda rtol, atol: optx.Dogleg(rtol=rtol, atol=atol),
+    "bfgs": lambda rtol, atol: optx.BFGS(rtol=rtol, atol=atol),
+}
+
+#: optimistix's results a compiled step can return, in the order of their integer codes
+#: (`result_code`); a result outside the table has code `len(RESULTS)`.
+RESULTS = tuple(name for name in ("successful", "max_steps_reached", "nonlinear_divergence", "nonlinear_max_steps_reached",
+                                  "singular", "breakdown", "stagnation", "conlim", "nonfinite_input", "nonfinite")
+                if hasattr(optx.RESULTS, name))
+#: The results a fit reports by name (`result_name`); any other is "failed".
+NAMED = ("successful", "max_steps_reached", "nonlinear_divergence", "nonlinear_max_steps_reached", "singular", "breakdown",
+         "stagnation")
+#: Integer code of each result in `RESULTS`.
+CODES = {name: code for code, name in enumerate(RESULTS)}
+_MESSAGES = tuple(optx.RESULTS[getattr(optx.RESULTS, name)] for name in RESULTS)
+
+
+def result_code(result) -> Int[Array, ""]:
+    """An optimistix result as its code in `RESULTS` (traceable: public comparisons only)."""
+    code = jnp.asarray(len(RESULTS), jnp.int32)
+    for index in reversed(range(len(RESULTS))):
+        code = jnp.where(result == getattr(optx.RESULTS, RESULTS[index]), jnp.int32(index), code)
+    return code
+
+
+def result_name(code: int) -> str:
+    """The name a fit reports for a result code: the result's own if `NAMED`, else "failed"."""
+    name = RESULTS[code] if 0 <= code < len(RESULTS) else "failed"
+    return name if name in NAMED else "failed"
+
+
+def result_message(code: int) -> str:
+    """optimistix's message for a result code (its name where the message is empty)."""
+    if not 0 <= code < len(RESULTS):
+        return "failed"
+    return _MESSAGES[code] or RESULTS[code]
+
+
+def with_dense_jacobian(fn):
+    """fn(y, args) with a jvp rule in y that builds the whole Jacobian by `jax.jacfwd`
+    (one batched forward pass) and applies it: J·ẏ.
+
+    optimistix's Gauss–Newton family linearises fn and then evaluates the linear map once
+    per free parameter; with this rule that is a matrix product, and the render's
+    forward-mode pass runs once per step. Reverse mode still works: the rule is linear in
+    ẏ, so JAX transposes it."""
+
+    def dense_fn(y, args):
+        # the args' non-array parts (a level's static flags) stay Python values
+        arrays, static = eqx.partition(args, eqx.is_array)
+
+        @jax.custom_jvp
+        def dense(y, arrays):
+            return fn(y, eqx.combine(arrays, static))
+
+        @dense.defjvp
+        def dense_jvp(primals, tangents):
+            (y, arrays), (ydot, _) = primals, tangents
+            flat, unravel = jax.flatten_util.ravel_pytree(y)
+            jac, value = jax.jacfwd(lambda v: (fn(unravel(v), eqx.combine(arrays, static)),) * 2, has_aux=True)(flat)
+            step, _ = jax.flatten_util.ravel_pytree(ydot)
+            return value, jnp.tensordot(jac, step, axes=1)
+
+        return dense(y, arrays)
+
+    return dense_fn
+
+
+class Stepper:
+    """A solver's init and step on one start, for every level of a fit.
+
+    **Arguments:**
+
+    - `objective`: the residual function r(y, samples).
+    - `solver`: a key of `SOLVERS`; `rtol`, `atol` its tolerances.
+    - `jac`: 'fwd' (the Jacobian by `with_dense_jacobian`) or 'bwd' (reverse mode).
+
+    `initial` and `advance` are traceable; `init` and `step` are their `eqx.filter_jit`
+    forms, compiled once per fit (a level's samples are arguments).
+    """
+
+    def __init__(self, objective: Objective, solver: str, rtol: float, atol: float, jac: str):
+        residuals = with_dense_jacobian(objective.residuals) if jac == "fwd" else objective.residuals
+        self.options = {"jac": "bwd"} if jac == "bwd" and solver != "bfgs" else {}
+        self.solver = SOLVERS[solver](rtol, atol)
+        if solver == "bfgs":
+            def fn(y, args):
+                r = residuals(y, args)
+                return 0.5 * jnp.sum(r * r), None
+        else:
+            def fn(y, args):
+                return residuals(y, args), None
+        self.fn = fn
+        self.init = eqx.filter_jit(self.initial)
+        self.step = eqx.filter_jit(self.advance)
+
+    def initial(self, y, args):
+        """The solver's state at y on the level whose samples are `args`."""
+        f_struct, aux_struct = jax.eval_shape(lambda: self.fn(y, args))
+        return self.solver.init(self.fn, y, args, self.options, f_struct, aux_struct, frozenset())
+
+    def advance(self, y, state, args):
+        """One solver step: returns (y, state, done, result code, loss), where y is the last
+        accepted point and loss ½·mean(r²) there."""
+        y, state, _ = self.solver.step(self.fn, y, args, self.options, state, frozenset())
+        done, result = self.solver.terminate(self.fn, y, args, self.options, state, frozenset())
+        # the state holds the accepted point's function value (no second render):
+        # Gauss–Newton family residuals, or BFGS's ½Σr²
+        info = state.f_info
+        loss = 0.5 * jnp.mean(info.residual**2) if hasattr(info, "residual") else info.f / args.target.size
+        return y, state, done, result_code(result), loss
