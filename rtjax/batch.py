@@ -264,8 +264,8 @@ def render_batch(
     mode: how a device takes its frames within the call: "vmap" (all at once, one
     vectorised program: what an accelerator wants), "map" (one after another,
     `lax.map`: each frame keeps the renderer's run-time skipping of finished ray
-    segments, which `vmap` turns into computing both sides of a select; measured
-    about 2× faster than "vmap" on a CPU, see README), or "auto" (default: "map" on a
+    segments, which `vmap` turns into computing both sides of a select: faster on a
+    CPU), or "auto" (default: "map" on a
     CPU, "vmap" on a GPU or TPU). Differentiable in `params`."""
     leaves = jax.tree.leaves(params)
     if not leaves or np.ndim(leaves[0]) < 1:

@@ -16,7 +16,7 @@ import threading
 import time
 from collections.abc import Iterator
 
-from .errors import DeckError, RtjaxError
+from .errors import DeckError, RtjaxError, shown
 from .render import MAX_EDGE_WIDTH
 from .xla import tune_cpu, use_compilation_cache
 
@@ -112,7 +112,7 @@ def _start_distributed(args) -> None:
 
 
 def cmd_render(args) -> int:
-    from .deck import _show, load_deck
+    from .deck import load_deck
 
     deck = load_deck(args.deck)
     if not deck.frames:
@@ -161,17 +161,17 @@ def cmd_render(args) -> int:
                 if len(written) > 1:
                     save_image(written[1], pixels)
         except RtjaxError as e:
-            raise DeckError(deck.path, frame.line, f"rend {_show(frame.output)}: {e}") from None
+            raise DeckError(deck.path, frame.line, f"rend {shown(frame.output)}: {e}") from None
         except OSError as e:
             where = f"{e.filename}: " if e.filename else ""
-            raise DeckError(deck.path, frame.line, f"rend {_show(frame.output)}: {where}{e.strerror or e}") from None
+            raise DeckError(deck.path, frame.line, f"rend {shown(frame.output)}: {where}{e.strerror or e}") from None
         except MemoryError:
-            raise DeckError(deck.path, frame.line, f"rend {_show(frame.output)}: out of memory") from None
+            raise DeckError(deck.path, frame.line, f"rend {shown(frame.output)}: out of memory") from None
         except RuntimeError as e:  # XLA's allocator: RESOURCE_EXHAUSTED
             if "RESOURCE_EXHAUSTED" not in str(e):
                 raise
             detail = _one_line(e)[:200]
-            raise DeckError(deck.path, frame.line, f"rend {_show(frame.output)}: out of memory ({detail})") from None
+            raise DeckError(deck.path, frame.line, f"rend {shown(frame.output)}: out of memory ({detail})") from None
         s = frame.scene.structure
         if writer:
             print(f"{' + '.join(written)}  {s.width}x{s.height}  {elapsed:.2f} s", flush=True)

@@ -172,7 +172,7 @@ def _candidates(tab: spheres.Table, radii, reach, ok, width: float):
 
 def _nearest(score):
     """Per ray, the sphere of smallest finite score, or −1. (argmin and a gather: XLA's
-    CPU backend runs a min over the leading axis more than 10× slower than argmin.)"""
+    CPU backend runs a min over the leading axis much slower than argmin.)"""
     idx = jnp.argmin(score, axis=0)
     best = jnp.take_along_axis(score, idx[None], axis=0)[0]
     return jnp.where(jnp.isfinite(best), idx, -1).astype(jnp.int32)

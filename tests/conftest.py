@@ -12,8 +12,11 @@ import threading
 
 import jax
 
+import rtjax
+
+rtjax.tune_cpu()  # before any JAX computation (rtjax.xla)
 jax.config.update("jax_enable_x64", True)
-# the command's compilation cache (rtjax.cli.cache_dir) stays off in tests, subprocesses
+# the command's compilation cache (rtjax.xla.cache_dir) stays off in tests, subprocesses
 # included; tests/test_cli.py turns it on where it checks it
 os.environ.setdefault("RTJAX_CACHE", "off")
 
@@ -23,8 +26,6 @@ SCENES = os.path.join(ROOT, "scenes")
 sys.path.insert(0, HERE)
 
 import pytest  # noqa: E402
-
-import rtjax  # noqa: E402
 
 
 @contextlib.contextmanager

@@ -25,11 +25,10 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 
 def launch(*args: str, popen=subprocess.Popen) -> subprocess.Popen:
     """tests/multidevice.py in a fresh process with 4 forced CPU devices (started by
-    `popen`, e.g. a conftest.Job's). rtjax adds its own XLA flag to XLA_FLAGS
-    (appending), so the forced device count survives."""
+    `popen`, e.g. a conftest.Job's). `rtjax.tune_cpu` appends its own XLA flag to
+    XLA_FLAGS, so the forced device count survives."""
     flags = (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4").strip()
     env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
-    env.pop("RTJAX_KEEP_XLA_FLAGS", None)
     return popen([sys.executable, os.path.join(HERE, "multidevice.py"), *args], env=env,
                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 

@@ -110,7 +110,7 @@ def test_exact_level_pulls_a_moved_shadow_edge_back():
     selection = Selection(start, "light", None)
     objective = Objective(selection, None, "l2", 10.0)
     y = {"scene": selection.y0()}
-    e = rtjax.render_samples(start, exact.xy, step=exact.step, edges=exact.width, parts=True)
+    e = rtjax.edge_samples(start, exact.xy, step=exact.step, edges=exact.width)
     centre, flipped, sx, t = (np.asarray(a) for a in (e.centre, e.flipped, e.shadow_x, exact.target))
     model = np.asarray(objective.model(y, exact))
     # (the light's turn also changes the lit floor's shading by a few levels)
