@@ -485,7 +485,7 @@ def culled_transmission(o, grid: LightGrid, centers, radii, origin, tmin, factor
         active = jnp.ones((p,), bool)
     o_sg, centers_sg, radii_sg = jax.lax.stop_gradient((o, centers, radii))
     cells = _cell_of(grid, o_sg)
-    table = jnp.concatenate([centers_sg, radii_sg[:, None]], axis=1)[grid.cand]  # (C, K, 4): per cell, its spheres
+    listing = jnp.concatenate([centers_sg, radii_sg[:, None]], axis=1)[grid.cand]  # (C, K, 4): per cell, its spheres
     k = grid.cand.shape[1]
     bit = (jnp.uint32(1) << jnp.arange(k, dtype=jnp.uint32))
     light = grid.light[:, None]
@@ -493,7 +493,7 @@ def culled_transmission(o, grid: LightGrid, centers, radii, origin, tmin, factor
     def body(sel, ok, bits):
         at = jnp.minimum(sel, p - 1)
         c = cells[at]
-        sph, cand, valid = table[c], grid.cand[c], grid.valid[c]  # (CHUNK, K, ·): row gathers
+        sph, cand, valid = listing[c], grid.cand[c], grid.valid[c]  # (CHUNK, K, ·): row gathers
         oc = o_sg[:, at][:, :, None]
         _, blocked, _, _ = pair_roots(oc, light[:, :, None], jnp.moveaxis(sph[..., :3], -1, 0), sph[..., 3],
                                        origin[at][:, None], cand, tmin)
