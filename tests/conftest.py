@@ -1,5 +1,5 @@
 """Shared test setup: 64-bit JAX (float64 where a test asks; float32 stays the default
-for scenes loaded from decks), the reference on the import path, and small helpers."""
+for scenes loaded from decks), tests/ on the import path, and small helpers."""
 
 from __future__ import annotations
 

@@ -19,7 +19,7 @@ import pytest
 from conftest import SCENES, quick_xla
 
 import rtjax
-from rtjax import bench, spheres
+from rtjax import bench, bench_derivatives, spheres
 from rtjax.cli import main
 
 DECK = os.path.join(SCENES, "ex2s3.dat")
@@ -125,7 +125,7 @@ def test_lm_step_runs():
         return rtjax.render(rtjax.Scene(st, p))
 
     with quick_xla(clear=True):
-        step = bench._lm_step(st, p0, image)
+        step = bench_derivatives.lm_step(p0, image)
         y = np.asarray(step())
     assert y.shape == (8, 3) and np.all(np.isfinite(y))
 

@@ -37,9 +37,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import reference
 import rtjax
 from conftest import quick_xla
+from rtjax import reference
 from rtjax.camera import pixel_grid
 from rtjax.render import EDGE_CHUNK_MIN
 
@@ -181,7 +181,7 @@ def test_image_approaches_the_supersampled_one(name):
 
 
 def test_supersampled_yardstick_is_the_independent_reference():
-    """The yardstick equals tests/reference.py's independent float64 render (32 × 32
+    """The yardstick equals rtjax.reference's independent float64 render (32 × 32
     samples), so its finite differences are those of an independent renderer."""
     frame = reference.parse_deck_text(DECKS["occlusion"][0])[0]
     np.testing.assert_allclose(supersampled("occlusion"), reference.render_reference(frame, depth=0, spp=SPP), atol=1e-4)

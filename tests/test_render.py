@@ -1,4 +1,4 @@
-"""The renderer against analytic pixels and the independent NumPy reference (tests/reference.py)."""
+"""The renderer against analytic pixels and the independent NumPy reference (rtjax.reference)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from conftest import SCENES, scene_from_text
 
-import reference
 import rtjax
+from rtjax import reference
 
 # An 11×11 image whose centre pixel looks exactly at the origin along +y.
 CAMERA = """
