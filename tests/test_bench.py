@@ -1,10 +1,8 @@
-"""`rtjax bench` on a tiny deck (the machinery, not the speed), and sphere culling: the
-same images and derivatives as testing every ray against every sphere.
+"""`rtjax bench` on a tiny deck (the machinery, not the speed).
 
 No timing is asserted anywhere: benchmarks print figures, tests check their shape. So
 the bench run and the LM step compile with XLA's backend optimisation off
-(`conftest.quick_xla`: the same program, half the compile time); the comparisons of
-culled and brute-force renders and derivatives run the optimised build.
+(`conftest.quick_xla`: the same program, half the compile time).
 """
 
 from __future__ import annotations
@@ -12,14 +10,13 @@ from __future__ import annotations
 import json
 import os
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import SCENES, quick_xla
 
 import rtjax
-from rtjax import bench, bench_derivatives, spheres
+from rtjax import bench
+from rtjax.bench import derivatives
 from rtjax.cli import main
 
 DECK = os.path.join(SCENES, "ex2s3.dat")
@@ -125,7 +122,7 @@ def test_lm_step_runs():
         return rtjax.render(rtjax.Scene(st, p))
 
     with quick_xla(clear=True):
-        step = bench_derivatives.lm_step(p0, image)
+        step = derivatives.lm_step(p0, image)
         y = np.asarray(step())
     assert y.shape == (8, 3) and np.all(np.isfinite(y))
 

@@ -4,11 +4,9 @@ and a solve that cannot converge (reported, never raised)."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 
-import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import ROOT, scene_from_text, truth_deck

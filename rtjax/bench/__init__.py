@@ -6,15 +6,15 @@ with a reference render (float64, a generous depth, K×K samples per pixel, full
 Per setting: compile time (first call minus the median of the later calls), the median
 of several timed renders after compile, and the error of the image as written to a file
 (8-bit levels): PSNR, RMS and max level difference, and the fraction of pixels off by
-≥ 1 level in some channel (`rtjax.bench_settings`). Derivatives (reverse gradient of the
+≥ 1 level in some channel (`rtjax.bench.settings`). Derivatives (reverse gradient of the
 mean image, forward Jacobian in the centres, one Levenberg–Marquardt step of optimistix
 on the image residual) are timed as ratios to the plain forward render timed in the
-same run, at the same size (`rtjax.bench_derivatives`). The independent NumPy float64
+same run, at the same size (`rtjax.bench.derivatives`). The independent NumPy float64
 renderer `rtjax.reference` renders the default settings in the same run, so its
 speed-up is a ratio measured on this machine, not a claim.
 
 `--scale` adds render time against the number of spheres and the pixel count, and the
-peak memory of the reverse gradient against depth (`rtjax.bench_scale`).
+peak memory of the reverse gradient against depth (`rtjax.bench.scale`).
 
 Timings are wall-clock medians on whatever else the machine is running; ratios within
 one run are steadier than times across runs. float64 needs
@@ -37,13 +37,13 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from .bench_config import Config as Config
-from .bench_derivatives import measure_derivatives
-from .bench_measure import image_errors as image_errors, machine, quantize as quantize
-from .bench_plots import pareto_plot as pareto_plot, scale_plot as scale_plot
-from .bench_scale import measure_scale
-from .bench_settings import KNOBS as KNOBS, Setting as Setting, measure_numpy, measure_settings
-from .random_scenes import random_deck_text as random_deck_text, random_scene as random_scene
+from .config import Config as Config
+from .derivatives import measure_derivatives
+from .measure import image_errors as image_errors, machine, quantize as quantize
+from .plots import pareto_plot as pareto_plot, scale_plot as scale_plot
+from .scale import measure_scale
+from .settings import KNOBS as KNOBS, Setting as Setting, measure_numpy, measure_settings
+from ..random_scenes import random_deck_text as random_deck_text, random_scene as random_scene
 
 
 def run(deck_path: str, cfg: Config | None = None, *, scale: bool = False, log: Callable[[str], None] = print) -> dict:
@@ -53,7 +53,7 @@ def run(deck_path: str, cfg: Config | None = None, *, scale: bool = False, log: 
 
     - `deck_path`: the deck; its first frame is measured.
     - `cfg`: what to measure (`Config.full()` when None).
-    - `scale`: also measure against spheres, pixels and depth (`rtjax.bench_scale`).
+    - `scale`: also measure against spheres, pixels and depth (`rtjax.bench.scale`).
     - `log`: called with each progress line.
 
     **Returns:** the JSON-ready result (NaN and infinities as None): the deck, its size,
@@ -175,7 +175,7 @@ def write_outputs(result: dict, outdir: str, stem: str) -> dict[str, str]:
     **Returns:** the paths written: `json` (bench_<stem>.json), `plot` (bench_<stem>.png,
     `pareto_plot`) and, for a `--scale` result, `scale_plot` (bench_<stem>_scale.png).
     """
-    from .atomic import atomic_write
+    from ..atomic import atomic_write
 
     os.makedirs(outdir, exist_ok=True)
     paths = {"json": os.path.join(outdir, f"bench_{stem}.json"), "plot": os.path.join(outdir, f"bench_{stem}.png")}

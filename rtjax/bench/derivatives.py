@@ -9,9 +9,9 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 
-from .bench_config import Config
-from .bench_measure import timed
-from .bench_settings import scaled
+from .config import Config
+from .measure import timed
+from .settings import scaled
 
 
 def measure_derivatives(scene, cfg: Config, log: Callable[[str], None]) -> dict:

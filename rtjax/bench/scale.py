@@ -11,9 +11,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .bench_config import Config
-from .bench_measure import memory_bytes, timed
-from .random_scenes import random_scene
+from .config import Config
+from .measure import memory_bytes, timed
+from ..random_scenes import random_scene
 
 
 def measure_scale(scene, cfg: Config, log: Callable[[str], None]) -> dict:

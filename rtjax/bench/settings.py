@@ -13,8 +13,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .bench_config import Config
-from .bench_measure import image_errors, timed
+from .config import Config
+from .measure import image_errors, timed
 
 #: Knob order in the table and the plot.
 KNOBS = ("reference", "default", "dtype", "depth", "spp", "edges", "scale")
@@ -134,7 +134,7 @@ def measure_numpy(deck_path: str, width: int, depth: int, cfg: Config, default_i
     **Returns:** a dict with `median_s`, `runs_s`, `depth`, `spp` and
     `rtjax_default_vs_numpy` (`image_errors` of rtjax's image against NumPy's).
     """
-    from . import reference
+    from .. import reference
 
     with open(deck_path, encoding="utf-8") as f:
         frame = reference.parse_deck_text(f.read(), os.path.dirname(os.path.abspath(deck_path)))[0]

@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 import os
 
-from .spheres import CULL_ABOVE
+from ..spheres import CULL_ABOVE
 
 
 def pareto_plot(result: dict, path: str) -> None:
