@@ -348,22 +348,19 @@ def both_sides(best: Best, centers, radii, width, sided: bool) -> Sides:
 
 class EdgeSamples(NamedTuple):
     """What the silhouette-aware trace of each sample gives (`trace.trace_edges`): its
-    colour through the centre, and both sides of its nearest silhouette and shadow edge.
+    colour through the centre, its box-filtered colour, and both sides of its nearest
+    silhouette and shadow edge.
 
     Colours are clamped to 0..255; inside the renderer they are (3, K) and a sample is a
     column, `rtjax.edge_samples` returns them as (K, 3). Without a silhouette within
-    reach, inside = outside = centre, alpha = 1 and x = 0; without a shadow edge within
-    reach (and always in box mode), flipped = centre and shadow_x = inf."""
+    reach, blended = inside = outside = centre, alpha = 1 and x = 0; without a shadow
+    edge within reach (and always in box mode), flipped = centre and shadow_x = inf."""
 
     centre: Float[Array, "3 k"]  # through the sample's centre: shadow edges box-filtered (box mode) or sharp (sided)
+    blended: Float[Array, "3 k"]  # α·inside + (1 − α)·outside: in box mode, the sample's box-filtered colour
     inside: Float[Array, "3 k"]  # traced on the edge sphere's side of the silhouette
     outside: Float[Array, "3 k"]  # traced on its other side
     alpha: Float[Array, " k"]  # the fraction of the sample's box on the edge sphere's side
     x: Float[Array, " k"]  # the centre's signed distance to the silhouette in box widths, > 0 inside
     flipped: Float[Array, "3 k"]  # sided mode: the centre's colour across its nearest shadow edge
     shadow_x: Float[Array, " k"]  # sided mode: the centre's distance to that edge in box widths (≥ 0)
-
-    def blend(self) -> Float[Array, "3 k"]:
-        """The box-filtered colour α·inside + (1 − α)·outside (the centre's colour where
-        no silhouette is within reach)."""
-        return self.alpha * self.inside + (1 - self.alpha) * self.outside

@@ -218,7 +218,7 @@ def colours_at(s: Structure, p: Params, xy, step, depth: int, tile: int, mode: M
         return jnp.clip(tiled(lambda o, d: trace(s, p, o, d, depth).colour, tile, o, d), 0, 255)
 
     def run(o, d, diff):
-        return trace_edges(s, p, o, d, diff, depth, width, BOX, capacity).blend()
+        return trace_edges(s, p, o, d, diff, depth, width, BOX, capacity).blended
 
     return tiled(run, tile, *_differentials(s, p, xy, step), count=count)
 

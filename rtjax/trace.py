@@ -325,7 +325,7 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
     refracted. Pass 2 traces, for the pixels that have one (packed, up to `capacity`,
     default `edge_capacity`), both sides of that edge from its segment on (the edge
     sphere met on one side, removed on the other): through the centroids of their parts
-    of the pixel's box in box mode, whose blend (`EdgeSamples.blend`) is the pixel's
+    of the pixel's box in box mode, whose blend (`EdgeSamples.blended`) is the pixel's
     box-filtered colour; just across the edge where it passes nearest to the centre in
     sided mode. Its cost follows the edges' length, not the image's area.
     """
@@ -352,7 +352,8 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
         flipped, shadow_x = jnp.clip(rays.colour + rays.flip.delta, 0, 255), rays.flip.x
     else:
         flipped, shadow_x = centre, jnp.full((n,), jnp.inf, centre.dtype)
-    return edges.EdgeSamples(centre=centre, inside=packed.scatter(centre, inside), outside=packed.scatter(centre, outside),
+    return edges.EdgeSamples(centre=centre, blended=packed.scatter(centre, side.alpha * inside + (1 - side.alpha) * outside),
+                             inside=packed.scatter(centre, inside), outside=packed.scatter(centre, outside),
                              alpha=packed.scatter(jnp.ones_like(side.alpha, shape=(n,)), side.alpha),
                              x=packed.scatter(jnp.zeros_like(side.x, shape=(n,)), side.x), flipped=flipped,
                              shadow_x=shadow_x)

@@ -157,6 +157,8 @@ _JOBS: list[Job] = []
 
 
 def pytest_collection_finish(session):
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        return  # several workers: each job starts when a test of the worker that runs it needs it
     modules = []
     for item in session.items:
         module = getattr(item, "module", None)
