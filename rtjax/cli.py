@@ -142,8 +142,9 @@ def cmd_render(args) -> int:
             if i not in ready:
                 chunk = chunks[chunk_of[i]]
                 start = time.perf_counter()
-                images = render_chunk([scenes[j] for j in chunk], **options)
-                jax.block_until_ready(images)
+                with args.interrupts.deferring():
+                    images = render_chunk([scenes[j] for j in chunk], **options)
+                    jax.block_until_ready(images)
                 share = (time.perf_counter() - start) / len(chunk)
                 ready.update({j: (image, share) for j, image in zip(chunk, images)})
             image, elapsed = ready.pop(i)
@@ -196,12 +197,15 @@ def _float_list(text: str) -> list[float]:
 
 
 class _Progress:
-    """One line per iteration; on a terminal, a bar that fills as the steps are used."""
+    """One line per iteration; on a terminal, a bar that fills as the steps are used.
+    Each iteration is a safe point for a signal (`Interrupts.check`)."""
 
-    def __init__(self, max_steps: int, quiet: bool):
+    def __init__(self, max_steps: int, quiet: bool, interrupts: "Interrupts"):
         self.max_steps, self.quiet, self.tty = max_steps, quiet, sys.stdout.isatty()
+        self.interrupts = interrupts
 
     def __call__(self, row: dict) -> None:
+        self.interrupts.check()
         if self.quiet:
             return
         text = (f"step {row['step']:3d}  {row['width']:4d} px  loss {row['loss']:.4e}  "
@@ -249,17 +253,18 @@ def cmd_fit(args) -> int:
         mask=args.mask,
         assignment_order=args.assignment_order,
     )
-    progress = _Progress(args.max_steps, args.quiet or jax.process_index() != 0)
+    progress = _Progress(args.max_steps, args.quiet or jax.process_index() != 0, args.interrupts)
     several = args.starts > 1 or args.devices != 1
     try:
-        if several:
-            multi = fitting.fit_multistart(frame.scene, args.target, args.free, starts=args.starts, seed=args.seed,
-                                           spread=args.spread, devices=args.devices, spheres=args.spheres,
-                                           options=options, callback=progress)
-            result = multi.best
-        else:
-            result = fitting.fit(frame.scene, args.target, args.free, spheres=args.spheres, options=options,
-                                 callback=progress)
+        with args.interrupts.deferring():
+            if several:
+                multi = fitting.fit_multistart(frame.scene, args.target, args.free, starts=args.starts, seed=args.seed,
+                                               spread=args.spread, devices=args.devices, spheres=args.spheres,
+                                               options=options, callback=progress)
+                result = multi.best
+            else:
+                result = fitting.fit(frame.scene, args.target, args.free, spheres=args.spheres, options=options,
+                                     callback=progress)
     finally:
         progress.close()
     if jax.process_index() != 0:  # several hosts: the first one writes and reports
@@ -378,37 +383,68 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 class Interrupted(KeyboardInterrupt):
-    """SIGTERM or SIGHUP, raised like Ctrl-C so that temporary files are cleaned up."""
+    """SIGINT, SIGTERM or SIGHUP, raised like Ctrl-C so that temporary files are cleaned up."""
 
     def __init__(self, signum: int):
         super().__init__(signum)
         self.signum = signum
 
 
-@contextlib.contextmanager
-def _interrupt_on_termination() -> Iterator[None]:
-    """Turn SIGTERM/SIGHUP into an exception while rendering (their default kills the
-    process on the spot, leaving a temporary file behind mid-write)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
+class Interrupts:
+    """SIGINT, SIGTERM and SIGHUP while a command runs, raised as `Interrupted` (their
+    default would kill the process on the spot, leaving a temporary file behind
+    mid-write).
 
-    def handler(signum, frame):
-        raise Interrupted(signum)
+    Within `deferring()` (JAX computations) a signal is noted when it arrives and raised
+    at the block's end or at a `check` inside it (a fit's iteration): raised at once, it
+    could land in a callback from JAX's compiled code, which reports it as a traceback.
+    What it waits for is the computation under way, which compiled code would not leave
+    earlier anyway. Elsewhere (writing files) it is raised at once."""
 
-    names = [n for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n)]
-    previous = {n: signal.signal(getattr(signal, n), handler) for n in names}
-    try:
-        yield
-    finally:
-        for n, old in previous.items():
-            signal.signal(getattr(signal, n), signal.SIG_DFL if old is None else old)
+    def __init__(self):
+        self.deferred = False
+        self.pending: int | None = None
+
+    def _handler(self, signum, frame):
+        if not self.deferred:
+            raise Interrupted(signum)
+        self.pending = signum
+
+    def check(self) -> None:
+        """Raise `Interrupted` for a signal noted since the command began."""
+        if self.pending is not None:
+            raise Interrupted(self.pending)
+
+    @contextlib.contextmanager
+    def deferring(self) -> Iterator[None]:
+        """Signals within the block are raised at its end (or at a `check`)."""
+        self.deferred = True
+        try:
+            yield
+        finally:
+            self.deferred = False
+        self.check()
+
+    @contextlib.contextmanager
+    def installed(self) -> Iterator["Interrupts"]:
+        """The handlers in place for the block (main thread only), the previous ones after."""
+        if threading.current_thread() is not threading.main_thread():
+            yield self
+            return
+        names = [n for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n)]
+        previous = {n: signal.signal(getattr(signal, n), self._handler) for n in names}
+        try:
+            yield self
+        finally:
+            for n, old in previous.items():
+                signal.signal(getattr(signal, n), signal.SIG_DFL if old is None else old)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    with _interrupt_on_termination():
+    with Interrupts().installed() as interrupts:
+        args.interrupts = interrupts
         try:
             tune_cpu()  # before anything (a deck's arrays included) starts JAX
             _start_distributed(args)

@@ -30,6 +30,7 @@ def tiny_result():
         return bench.run(DECK, cfg, log=lambda line: None)
 
 
+@pytest.mark.slow
 def test_bench_json_fields_and_plausible_values(tiny_result, tmp_path):
     res = tiny_result
     paths = bench.write_outputs(res, str(tmp_path), "tiny")
@@ -82,6 +83,7 @@ def test_bench_json_fields_and_plausible_values(tiny_result, tmp_path):
     assert "reference" in text and "NumPy" in text and "×" in text
 
 
+@pytest.mark.slow
 def test_plots_leave_the_callers_backend_alone(tiny_result, tmp_path, monkeypatch):
     """The bench's and the fit report's plots draw on Figures of their own: no
     `matplotlib.use`, which would switch a notebook's backend."""
@@ -113,6 +115,7 @@ def test_image_errors():
     assert bench.image_errors(small, np.full((4, 6, 3), 10.0))["max_levels"] == 0
 
 
+@pytest.mark.slow
 def test_lm_step_runs():
     """The Levenberg–Marquardt step the bench times moves the centres (tiny image)."""
     scene = rtjax.load_deck(DECK).frames[0].scene.resized(12)

@@ -93,6 +93,7 @@ def test_sample_deck_renders_a_sun_raster_pillow_reads(tmp_path):
     assert len(np.unique(rgb.reshape(-1, 3), axis=0)) > 1000  # a rendered scene, not a flat fill
 
 
+@pytest.mark.slow
 def test_compiled_programs_are_kept_between_runs(tmp_path):
     """RTJAX_CACHE names the folder where the command keeps XLA's compiled programs; a
     second run of the same deck loads them and writes the same image."""

@@ -168,6 +168,7 @@ def cosine(a, b) -> float:
 # measured mean |image − supersampled| (levels of 255), plain → silhouette-aware:
 # single 0.551 → 0.074 (7.5×), occlusion 0.877 → 0.134 (6.6×), shadow 1.063 → 0.089
 # (12×), mirror 0.261 → 0.037 (7.0×)
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["single", "occlusion", "shadow", "mirror"])
 def test_image_approaches_the_supersampled_one(name):
     k = 1 if name == "mirror" else 0
@@ -225,6 +226,7 @@ CASES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, k, axis", list(CASES), ids=[f"{n}-sphere{k}-{a}" for n, k, a in CASES])
 def test_derivative_approaches_the_supersampled_finite_difference(name, k, axis):
     max_sum_error = CASES[(name, k, axis)]
@@ -244,6 +246,7 @@ def test_derivative_approaches_the_supersampled_finite_difference(name, k, axis)
             assert error <= 0.05, f"channel {ch}: summed derivative {ad[..., ch].sum():.1f} vs {fd[..., ch].sum():.1f}"
 
 
+@pytest.mark.slow
 def test_plain_derivative_misses_the_edge_terms():
     """Why the mode exists: on the single sphere the plain render's radius derivative
     (pixel centres, no silhouette term) is far from the supersampled one."""
@@ -255,6 +258,7 @@ def test_plain_derivative_misses_the_edge_terms():
     assert cosine(jacobian[AXES["r"]], fd) > 0.99
 
 
+@pytest.mark.slow
 def test_reverse_mode_agrees_with_forward_mode():
     """jax.grad of the mean silhouette-aware image equals the mean of its jacfwd columns
     (the mode's edge terms reach both modes of differentiation alike)."""
@@ -275,6 +279,7 @@ def test_reverse_mode_agrees_with_forward_mode():
 # (c) the width going to 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["occlusion", "shadow", "mirror"])
 def test_vanishing_width_gives_the_plain_image(name):
     s = scene(name)
@@ -290,6 +295,7 @@ def test_vanishing_width_gives_the_plain_image(name):
 # brief asked 0.95). Summed derivatives are not asserted: Σ 152.3 / 162.8 (x, 6.4 %),
 # 99.0 / 81.1 (y), −239.8 / −193.8 (z), −252.2 / −304.2 (r, 17 %; per channel R 5.4 %,
 # B 1.2 %, G cancels): the reflected outline's curvature within a pixel is large.
+@pytest.mark.slow
 @pytest.mark.parametrize("axis", ["x", "y", "z", "r"])
 def test_silhouette_seen_in_a_mirror(axis):
     _, jacobian = edge_mode("mirror", 1)
@@ -307,6 +313,7 @@ def test_silhouette_seen_in_a_mirror(axis):
 # glass sphere's 0.20): its outline is seen refracted. Measured cosines 0.9936, 0.9938,
 # 0.9949, 0.9929 (x, y, z, r); summed derivatives Σ −977.0 / −997.1 (x, 2.0 %),
 # 273.2 / 261.7 (y, 4.4 %), −1123.1 / −1129.8 (z, 0.6 %); r's sum cancels (|Σ|/Σ|·| = 0.02).
+@pytest.mark.slow
 @pytest.mark.parametrize("axis", ["x", "y", "z", "r"])
 def test_silhouette_seen_through_glass(axis):
     s = scene("glass")
@@ -449,6 +456,7 @@ def test_every_pixel_an_outline_crosses_is_chosen():
     assert near.sum() < 3 * crossed.sum()  # the outline's neighbours and the terminator (measured 444 for 154)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["occlusion", "shadow", "glass"])  # (single: within occlusion; mirror: glass reflects too)
 def test_whole_image_is_every_pixel_traced_in_the_mode(name):
     """At 96 × 96 the chosen pixels hold every edge: the image equals the mode traced
@@ -461,6 +469,7 @@ def test_whole_image_is_every_pixel_traced_in_the_mode(name):
     assert np.abs(whole - np.asarray(rtjax.render(s, depth=depth)).reshape(-1, 3)).max() > 20  # edges blended
 
 
+@pytest.mark.slow
 def test_whole_image_derivatives_are_every_pixel_traced_in_the_mode():
     """The shadow scene at 96 × 96: the Jacobian of the image with respect to the
     occluder's centre and radius (jacfwd) equals that of the mode traced at every pixel,

@@ -135,6 +135,7 @@ def test_compiled_graph_follows_the_structure():
     assert lit.count("reduce_prod") > opaque.count("reduce_prod")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["ex2s3.dat", "level1_opaque.dat", "level2_mirrors.dat", "level3_glass.dat"])
 def test_matches_reference_on_scene_decks(name):
     """Quantised pixels within 2 levels of the float64 reference on ≥ 99.5 % of pixels."""

@@ -40,6 +40,7 @@ def _random_rays(rng, centers, radii, p):
     return o, d / np.linalg.norm(d, axis=0), origin
 
 
+@pytest.mark.slow
 def test_culled_nearest_and_transmission_equal_brute_force():
     """Random rays (not a camera's: the hard case for culling), rays leaving spheres,
     an excluded sphere per ray, a duplicated sphere (exact ties), inactive rays."""
@@ -98,6 +99,7 @@ def brute_force(scene: rtjax.Scene) -> rtjax.Scene:
     return rtjax.Scene(scene.structure.replace(culling=False), scene.params)
 
 
+@pytest.mark.slow
 def test_culled_render_equals_brute_force(scene200):
     """A random 200-sphere scene: the image (pixel centres and 2×2 samples) is the same
     float for float with culling as with every ray against every sphere."""
@@ -109,6 +111,7 @@ def test_culled_render_equals_brute_force(scene200):
         np.testing.assert_array_equal(c, b)
 
 
+@pytest.mark.slow
 def test_culled_derivatives_equal_brute_force(scene200):
     """Reverse gradient in every parameter and a forward derivative in the centres."""
     st, p0 = scene200.structure, scene200.params
