@@ -344,8 +344,8 @@ class Objective:
         scene = rtjax.Scene(self.selection.scene.structure, self.selection.params(y["scene"]))
         nuisance = y.get("nuisance", {})
 
-        def render(xy, edges=samples.width, **kw):
-            return rtjax.render_samples(scene, xy, step=samples.step, depth=self.depth, edges=edges, **kw)
+        def render(xy, edges=samples.width):
+            return rtjax.render_samples(scene, xy, step=samples.step, depth=self.depth, edges=edges)
 
         if samples.whole:
             image = camera(rtjax.render(scene, depth=self.depth, edges=1.0), nuisance, logs=True)
@@ -359,7 +359,7 @@ class Objective:
             return apply_nuisance(colours, nuisance, logs=True)
         if not samples.exact:
             return apply_nuisance(render(samples.xy), nuisance, logs=True)
-        e = render(samples.xy, parts=True)
+        e = rtjax.edge_samples(scene, samples.xy, step=samples.step, depth=self.depth, edges=samples.width)
         centre, inside, outside, flipped = (apply_nuisance(c, nuisance, logs=True)
                                             for c in (e.centre, e.inside, e.outside, e.flipped))
         across = jnp.where((e.x > 0)[:, None], outside, inside)  # the silhouette's side the centre is not on

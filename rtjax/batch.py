@@ -27,7 +27,6 @@ process gets the whole image back.
 from __future__ import annotations
 
 import functools
-import importlib
 from collections.abc import Sequence
 
 import jax
@@ -35,15 +34,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from .camera import subpixel_offsets
 from .errors import RtjaxError
-from .render import colours_at, resolve_options
+from .render import Options, colours_at, render, render_image, resolve_options, supersample
 from .scene import Params, Scene, Structure
-from .spheres import GROUP, coherent_order, culls
-
-#: The module (the package's `render` attribute is the function): `render` is looked up
-#: on it when called, so that a replacement (tests) is seen.
-_render_module = importlib.import_module("rtjax.render")
+from .spheres import GROUP, coherent_order
+from .trace import BOX, PLAIN
 
 #: The mesh axis name.
 AXIS = "d"
@@ -142,7 +137,7 @@ def _layout(s: Structure, n: int) -> tuple[int, int]:
     turn (8×8 blocks, `GROUP` rays, in culled scenes' coherent order), padded so that
     every device gets as many units."""
     p = s.width * s.height
-    unit = GROUP if culls(s.n_spheres) else s.width
+    unit = GROUP if s.culls else s.width
     units = -(-p // unit)
     return unit, -(-units // n) * n * unit
 
@@ -156,7 +151,7 @@ def _pixel_indices(s: Structure, n: int):
     q = jnp.arange(padded, dtype=jnp.int32)
     dev, r = q // (padded // n), q % (padded // n)
     k = jnp.minimum(((r // unit) * n + dev) * unit + r % unit, p - 1)  # padding: copies of the last one
-    if culls(s.n_spheres):
+    if s.culls:
         order, _ = coherent_order(s.width, s.height)
         k = jnp.asarray(order.astype(np.int32))[k]
     return k, (unit, per)
@@ -169,44 +164,41 @@ def _reassemble(s: Structure, colours, n: int, unit: int, per: int):
     c = jnp.swapaxes(c, -3, -2).reshape(lead + (3, n * per * unit))
     p = s.width * s.height
     c = c[..., :p]
-    if culls(s.n_spheres):
+    if s.culls:
         _, inverse = coherent_order(s.width, s.height)
         c = c[..., jnp.asarray(inverse.astype(np.int32))]
     return jnp.moveaxis(c.reshape(lead + (3, s.height, s.width)), -3, -1)
 
 
-def _shade(s: Structure, p: Params, k, depth: int, spp: int, tile: int, edges: float):
+def _shade(s: Structure, p: Params, k, options: Options):
     """Colours (3, K) of pixels `k` (row-major indices): `rtjax.render`'s arithmetic
     (the positions i + ox, j + oy; K×K samples summed in the same order, then divided)."""
     dtype = p.eye.dtype
     ij = jnp.stack([(k % s.width).astype(dtype), (k // s.width).astype(dtype)])
-    step = jnp.asarray(1 / spp, dtype)
+    step = jnp.asarray(1 / options.spp, dtype)
+    mode = BOX if options.edges else PLAIN
 
     def sample(offset):
-        return colours_at(s, p, ij + offset[:, None], step, depth, tile, edges)
+        return colours_at(s, p, ij + offset[:, None], step, options.depth, options.tile, mode, options.edges)
 
-    offsets = subpixel_offsets(spp, dtype)
-    if spp == 1:
-        return sample(offsets[0])
-    total, _ = jax.lax.scan(lambda acc, off: (acc + sample(off), None), jnp.zeros((3, k.shape[0]), dtype), offsets)
-    return total / (spp * spp)
+    return supersample(sample, options.spp, (3, k.shape[0]), dtype)
 
 
-@functools.partial(jax.jit, static_argnames=("structure", "depth", "spp", "tile", "edges", "mesh", "batched", "split", "mode"))
-def _render_grid(params, structure: Structure, depth: int, spp: int, tile: int, edges: float,
-                 mesh: Mesh | None, batched: bool, split: str, mode: str = "vmap"):
+@functools.partial(jax.jit, static_argnames=("structure", "options", "mesh", "batched", "split", "mode"))
+def _render_grid(params, structure: Structure, options: Options, mesh: Mesh | None, batched: bool, split: str,
+                 mode: str = "vmap"):
     """Images (F, H, W, 3) of stacked params (or (H, W, 3) of one, `batched=False`),
     sharded over `mesh` by pixels or by frames; a device's frames are `jax.vmap`-ped
     (mode "vmap") or taken one after another by `lax.map` (mode "map")."""
     s = structure
     n = 1 if mesh is None or split == "frames" else mesh.devices.size
     k, (unit, per) = _pixel_indices(s, n)
-    whole = bool(edges) and n == 1  # the silhouette mode on whole images is `rtjax.render`'s own
+    whole = bool(options.edges) and n == 1  # the silhouette mode on whole images is `rtjax.render`'s own
 
     def one(p, k):
         if whole:
-            return _render_module.render_image(s, p, depth, spp, tile, edges)
-        return _shade(s, p, k, depth, spp, tile, edges)
+            return render_image(s, p, options)
+        return _shade(s, p, k, options)
 
     def local(p, k):
         if not batched:
@@ -224,10 +216,6 @@ def _render_grid(params, structure: Structure, depth: int, spp: int, tile: int, 
         colours = jax.shard_map(local, mesh=mesh, in_specs=(PartitionSpec(AXIS), PartitionSpec()),
                                 out_specs=PartitionSpec(AXIS), check_vma=False)(params, k)
     return colours if whole else _reassemble(s, colours, n, unit, per)
-
-
-def _check(structure: Structure, params: Params, depth, spp, dtype, edges, tile):
-    return resolve_options(Scene(structure, params), depth, spp, dtype, edges, tile)
 
 
 def _global(tree, mesh: Mesh | None, spec: PartitionSpec):
@@ -276,8 +264,8 @@ def render_batch(
     mode: how a device takes its frames within the call: "vmap" (all at once, one
     vectorised program: what an accelerator wants), "map" (one after another,
     `lax.map`: each frame keeps the renderer's run-time skipping of finished ray
-    segments, which `vmap` turns into computing both sides of a select; measured
-    about 2× faster than "vmap" on a CPU, see README), or "auto" (default: "map" on a
+    segments, which `vmap` turns into computing both sides of a select: faster on a
+    CPU), or "auto" (default: "map" on a
     CPU, "vmap" on a GPU or TPU). Differentiable in `params`."""
     leaves = jax.tree.leaves(params)
     if not leaves or np.ndim(leaves[0]) < 1:
@@ -290,7 +278,7 @@ def render_batch(
     if mode not in ("auto", "vmap", "map"):
         raise RtjaxError(f"mode must be 'auto', 'vmap' or 'map', not {mode!r}")
     first = jax.tree.map(lambda a: a[0], params)
-    depth, spp, dtype, edges, tile = _check(structure, first, depth, spp, dtype, edges, tile)
+    options = resolve_options(Scene(structure, first), depth, spp, dtype, edges, tile)
     mesh = device_mesh(devices)
     n = 1 if mesh is None else mesh.devices.size
     if split == "auto":
@@ -298,13 +286,13 @@ def render_batch(
     if mode == "auto":
         platform = (jax.devices()[0] if mesh is None else mesh.devices.flat[0]).platform
         mode = "map" if platform == "cpu" else "vmap"
-    params = params.astype(dtype)
+    params = params.astype(options.dtype)
     padded = frames
     if mesh is not None and split == "frames" and frames % n:
         padded = -(-frames // n) * n
         params = jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], padded - frames, axis=0)]), params)
     params = _global(params, mesh, PartitionSpec(AXIS) if split == "frames" else PartitionSpec())
-    images = _render_grid(params, structure, depth, spp, tile, edges, mesh, True, split, mode)
+    images = _render_grid(params, structure, options, mesh, True, split, mode)
     images = _local_copy(images)
     return images[:frames] if padded != frames else images
 
@@ -320,10 +308,10 @@ def render_sharded(scene: Scene, *, devices="all", depth: int | None = None, spp
     that at some pixels (README "Several devices and hosts")."""
     mesh = device_mesh(devices)
     if mesh is None:
-        return _render_module.render(scene, depth=depth, spp=spp, dtype=dtype, edges=edges, tile=tile)
-    depth, spp, dtype, edges, tile = _check(scene.structure, scene.params, depth, spp, dtype, edges, tile)
-    params = _global(scene.params.astype(dtype), mesh, PartitionSpec())
-    return _local_copy(_render_grid(params, scene.structure, depth, spp, tile, edges, mesh, False, "pixels"))
+        return render(scene, depth=depth, spp=spp, dtype=dtype, edges=edges, tile=tile)
+    options = resolve_options(scene, depth, spp, dtype, edges, tile)
+    params = _global(scene.params.astype(options.dtype), mesh, PartitionSpec())
+    return _local_copy(_render_grid(params, scene.structure, options, mesh, False, "pixels"))
 
 
 def batch_chunks(structure: Structure, frames: int, devices: int = 1, batch: int | None = None) -> list[range]:
@@ -357,8 +345,8 @@ def render_chunk(scenes: Sequence[Scene], *, depth=None, spp=1, dtype=None, edge
     if tile is not None:
         options["tile"] = tile
     if len(scenes) == 1:
-        if len(resolve_devices(devices)) == 1:  # looked up when called, so that it can be replaced (tests)
-            return [_render_module.render(scenes[0], **options)]
+        if len(resolve_devices(devices)) == 1:
+            return [render(scenes[0], **options)]
         return [render_sharded(scenes[0], devices=devices, **options)]
     out = render_batch(scenes[0].structure, stack_params([s.params for s in scenes]), devices=devices, mode=mode, **options)
     return [out[i] for i in range(len(scenes))]

@@ -16,7 +16,9 @@ import threading
 import time
 from collections.abc import Iterator
 
-from .errors import DeckError, RtjaxError
+from .errors import DeckError, RtjaxError, shown
+from .render import MAX_EDGE_WIDTH
+from .xla import tune_cpu, use_compilation_cache
 
 #: Image sides beyond this need --allow-large (a typo like `size 40000` would take minutes and GBs).
 MAX_SIDE = 16384
@@ -47,8 +49,8 @@ def _edge_width(text: str) -> float:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number of pixels, found {text!r}") from None
-    if not (0 <= value <= 16):
-        raise argparse.ArgumentTypeError(f"expected a width in [0, 16] pixels, found {text}")
+    if not (0 <= value <= MAX_EDGE_WIDTH):
+        raise argparse.ArgumentTypeError(f"expected a width in [0, {MAX_EDGE_WIDTH:g}] pixels, found {text}")
     return value
 
 
@@ -110,7 +112,7 @@ def _start_distributed(args) -> None:
 
 
 def cmd_render(args) -> int:
-    from .deck import _show, load_deck
+    from .deck import load_deck
 
     deck = load_deck(args.deck)
     if not deck.frames:
@@ -140,8 +142,9 @@ def cmd_render(args) -> int:
             if i not in ready:
                 chunk = chunks[chunk_of[i]]
                 start = time.perf_counter()
-                images = render_chunk([scenes[j] for j in chunk], **options)
-                jax.block_until_ready(images)
+                with args.interrupts.deferring():
+                    images = render_chunk([scenes[j] for j in chunk], **options)
+                    jax.block_until_ready(images)
                 share = (time.perf_counter() - start) / len(chunk)
                 ready.update({j: (image, share) for j, image in zip(chunk, images)})
             image, elapsed = ready.pop(i)
@@ -159,17 +162,17 @@ def cmd_render(args) -> int:
                 if len(written) > 1:
                     save_image(written[1], pixels)
         except RtjaxError as e:
-            raise DeckError(deck.path, frame.line, f"rend {_show(frame.output)}: {e}") from None
+            raise DeckError(deck.path, frame.line, f"rend {shown(frame.output)}: {e}") from None
         except OSError as e:
             where = f"{e.filename}: " if e.filename else ""
-            raise DeckError(deck.path, frame.line, f"rend {_show(frame.output)}: {where}{e.strerror or e}") from None
+            raise DeckError(deck.path, frame.line, f"rend {shown(frame.output)}: {where}{e.strerror or e}") from None
         except MemoryError:
-            raise DeckError(deck.path, frame.line, f"rend {_show(frame.output)}: out of memory") from None
+            raise DeckError(deck.path, frame.line, f"rend {shown(frame.output)}: out of memory") from None
         except RuntimeError as e:  # XLA's allocator: RESOURCE_EXHAUSTED
             if "RESOURCE_EXHAUSTED" not in str(e):
                 raise
             detail = _one_line(e)[:200]
-            raise DeckError(deck.path, frame.line, f"rend {_show(frame.output)}: out of memory ({detail})") from None
+            raise DeckError(deck.path, frame.line, f"rend {shown(frame.output)}: out of memory ({detail})") from None
         s = frame.scene.structure
         if writer:
             print(f"{' + '.join(written)}  {s.width}x{s.height}  {elapsed:.2f} s", flush=True)
@@ -188,18 +191,21 @@ def _float_list(text: str) -> list[float]:
         values = [float(x) for x in text.split(",") if x.strip()]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected numbers separated by commas, found {text!r}") from None
-    if not values or any(not (0 < v <= 16) for v in values):
-        raise argparse.ArgumentTypeError(f"expected edge widths in (0, 16] pixels, found {text!r}")
+    if not values or any(not (0 < v <= MAX_EDGE_WIDTH) for v in values):
+        raise argparse.ArgumentTypeError(f"expected edge widths in (0, {MAX_EDGE_WIDTH:g}] pixels, found {text!r}")
     return values
 
 
 class _Progress:
-    """One line per iteration; on a terminal, a bar that fills as the steps are used."""
+    """One line per iteration; on a terminal, a bar that fills as the steps are used.
+    Each iteration is a safe point for a signal (`Interrupts.check`)."""
 
-    def __init__(self, max_steps: int, quiet: bool):
+    def __init__(self, max_steps: int, quiet: bool, interrupts: "Interrupts"):
         self.max_steps, self.quiet, self.tty = max_steps, quiet, sys.stdout.isatty()
+        self.interrupts = interrupts
 
     def __call__(self, row: dict) -> None:
+        self.interrupts.check()
         if self.quiet:
             return
         text = (f"step {row['step']:3d}  {row['width']:4d} px  loss {row['loss']:.4e}  "
@@ -247,17 +253,18 @@ def cmd_fit(args) -> int:
         mask=args.mask,
         assignment_order=args.assignment_order,
     )
-    progress = _Progress(args.max_steps, args.quiet or jax.process_index() != 0)
+    progress = _Progress(args.max_steps, args.quiet or jax.process_index() != 0, args.interrupts)
     several = args.starts > 1 or args.devices != 1
     try:
-        if several:
-            multi = fitting.fit_multistart(frame.scene, args.target, args.free, starts=args.starts, seed=args.seed,
-                                           spread=args.spread, devices=args.devices, spheres=args.spheres,
-                                           options=options, callback=progress)
-            result = multi.best
-        else:
-            result = fitting.fit(frame.scene, args.target, args.free, spheres=args.spheres, options=options,
-                                 callback=progress)
+        with args.interrupts.deferring():
+            if several:
+                multi = fitting.fit_multistart(frame.scene, args.target, args.free, starts=args.starts, seed=args.seed,
+                                               spread=args.spread, devices=args.devices, spheres=args.spheres,
+                                               options=options, callback=progress)
+                result = multi.best
+            else:
+                result = fitting.fit(frame.scene, args.target, args.free, spheres=args.spheres, options=options,
+                                     callback=progress)
     finally:
         progress.close()
     if jax.process_index() != 0:  # several hosts: the first one writes and reports
@@ -376,62 +383,72 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 class Interrupted(KeyboardInterrupt):
-    """SIGTERM or SIGHUP, raised like Ctrl-C so that temporary files are cleaned up."""
+    """SIGINT, SIGTERM or SIGHUP, raised like Ctrl-C so that temporary files are cleaned up."""
 
     def __init__(self, signum: int):
         super().__init__(signum)
         self.signum = signum
 
 
-@contextlib.contextmanager
-def _interrupt_on_termination() -> Iterator[None]:
-    """Turn SIGTERM/SIGHUP into an exception while rendering (their default kills the
-    process on the spot, leaving a temporary file behind mid-write)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
+class Interrupts:
+    """SIGINT, SIGTERM and SIGHUP while a command runs, raised as `Interrupted` (their
+    default would kill the process on the spot, leaving a temporary file behind
+    mid-write).
 
-    def handler(signum, frame):
-        raise Interrupted(signum)
+    Within `deferring()` (JAX computations) a signal is noted when it arrives and raised
+    at the block's end or at a `check` inside it (a fit's iteration): raised at once, it
+    could land in a callback from JAX's compiled code, which reports it as a traceback.
+    What it waits for is the computation under way, which compiled code would not leave
+    earlier anyway. Elsewhere (writing files) it is raised at once."""
 
-    names = [n for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n)]
-    previous = {n: signal.signal(getattr(signal, n), handler) for n in names}
-    try:
-        yield
-    finally:
-        for n, old in previous.items():
-            signal.signal(getattr(signal, n), signal.SIG_DFL if old is None else old)
+    def __init__(self):
+        self.deferred = False
+        self.pending: int | None = None
 
+    def _handler(self, signum, frame):
+        if not self.deferred:
+            raise Interrupted(signum)
+        self.pending = signum
 
-def cache_dir() -> str | None:
-    """Where the command keeps XLA's compiled programs between runs: `$RTJAX_CACHE`, or
-    `$XDG_CACHE_HOME/rtjax/xla` (default `~/.cache/rtjax/xla`); `RTJAX_CACHE=off`: none.
-    A fit compiles its solver steps (~15-20 s on a 2-core CPU); the next fit of a scene
-    of the same structure and size loads them instead."""
-    value = os.environ.get("RTJAX_CACHE")
-    if value is not None:
-        return None if value.strip().lower() in ("", "off", "0", "none") else value
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "rtjax", "xla")
+    def check(self) -> None:
+        """Raise `Interrupted` for a signal noted since the command began."""
+        if self.pending is not None:
+            raise Interrupted(self.pending)
 
+    @contextlib.contextmanager
+    def deferring(self) -> Iterator[None]:
+        """Signals within the block are raised at its end (or at a `check`)."""
+        self.deferred = True
+        try:
+            yield
+        finally:
+            self.deferred = False
+        self.check()
 
-def _use_compilation_cache() -> None:
-    path = cache_dir()
-    if path is None:
-        return
-    import jax
-
-    jax.config.update("jax_compilation_cache_dir", path)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)  # renders and solver steps, not trivia
+    @contextlib.contextmanager
+    def installed(self) -> Iterator["Interrupts"]:
+        """The handlers in place for the block (main thread only), the previous ones after."""
+        if threading.current_thread() is not threading.main_thread():
+            yield self
+            return
+        names = [n for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n)]
+        previous = {n: signal.signal(getattr(signal, n), self._handler) for n in names}
+        try:
+            yield self
+        finally:
+            for n, old in previous.items():
+                signal.signal(getattr(signal, n), signal.SIG_DFL if old is None else old)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    with _interrupt_on_termination():
+    with Interrupts().installed() as interrupts:
+        args.interrupts = interrupts
         try:
-            _start_distributed(args)  # before anything (a deck's arrays included) starts JAX
-            _use_compilation_cache()
+            tune_cpu()  # before anything (a deck's arrays included) starts JAX
+            _start_distributed(args)
+            use_compilation_cache()
             return args.run(args)
         except RtjaxError as e:
             print(_one_line(e), file=sys.stderr)

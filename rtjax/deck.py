@@ -23,7 +23,7 @@ import numpy as np
 
 from .assemble import SPHERE_DEFAULTS, Line, Snapshot, Textures, Value, assemble
 from .camera import image_height
-from .errors import DeckError, RtjaxError
+from .errors import DeckError, RtjaxError, shown
 from .scene import TEXTURE, Scene
 
 # Ordinary float syntax, ASCII digits only (`\d` alone would accept any Unicode digit).
@@ -37,11 +37,6 @@ _LINE_BREAK_BYTES = re.compile(rb"\r\n|\r|\n")
 _F32_MAX = float(np.finfo(np.float32).max)
 #: The largest image side a deck may ask for (32-bit indices, the Sun raster header).
 MAX_SIDE = 2**31 - 1
-
-
-def _show(text: str) -> str:
-    """A token as it reads in a one-line message: as is if printable, else escaped."""
-    return text if text.isprintable() else repr(text)[1:-1]
 
 
 def _to_f32(value: float) -> float:
@@ -142,18 +137,18 @@ class Command:
         name, and a file name with an optional group of numbers (tmap).
         """
         found = f"found {len(args)}"
-        shown = f": {' '.join(map(_show, args))}" if args else ""
+        listed = f": {' '.join(map(shown, args))}" if args else ""
         if not self.args:
-            return f"{self.name} takes no arguments, {found}{shown}"
+            return f"{self.name} takes no arguments, {found}{listed}"
         names = " ".join(a.name for a in self.args if a.default is None)
         optional = [a.name for a in self.args if a.default is not None]
         if optional:
             names += f" [{' '.join(optional)}]"
         if all(a.kind != FILE for a in self.args):
             plural = "number" if len(self.args) == 1 else "numbers"
-            return f"{self.name} takes {len(self.args)} {plural} ({names}), {found}{shown}"
+            return f"{self.name} takes {len(self.args)} {plural} ({names}), {found}{listed}"
         takes = f"a file name and optionally {len(optional)} numbers ({names})" if optional else "1 file name"
-        return f"{self.name} takes {takes}, {found} arguments{shown}"
+        return f"{self.name} takes {takes}, {found} arguments{listed}"
 
 
 def _numbers(names: str, field: str, range: Range | None = None) -> tuple[Arg, ...]:
@@ -300,17 +295,17 @@ class _Parser:
         self.texts[arg.name] = text
         where = f"{self.command}: {arg.name}"
         if _NONFINITE.fullmatch(text):
-            raise self.error(f"{where} must be a finite number, found {_show(text)}")
+            raise self.error(f"{where} must be a finite number, found {shown(text)}")
         if not _NUMBER.fullmatch(text):
-            raise self.error(f"{where} must be a number, found {_show(text)}")
+            raise self.error(f"{where} must be a number, found {shown(text)}")
         value = float(text)
         if arg.kind == COUNT:
             if not math.isfinite(value):
-                raise self.error(f"{where} must be a finite number, found {_show(text)}")
+                raise self.error(f"{where} must be a finite number, found {shown(text)}")
             return value
         if not math.isfinite(_to_f32(value)):
             raise self.error(
-                f"{where} must be a finite number within float32 range (|x| ≤ {_F32_MAX:.7g}), found {_show(text)}"
+                f"{where} must be a finite number within float32 range (|x| ≤ {_F32_MAX:.7g}), found {shown(text)}"
             )
         return _to_f32(value)
 
@@ -319,7 +314,7 @@ class _Parser:
         text = self.texts.get(name)
         if text is None:
             return f"{value:g}"
-        return _show(text) if float(text) == value else f"{_show(text)} (= {value:g} in float32)"
+        return shown(text) if float(text) == value else f"{shown(text)} (= {value:g} in float32)"
 
     def error(self, message: str, line: int | None = None) -> DeckError:
         return DeckError(self.name, self.line if line is None else line, message)

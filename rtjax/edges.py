@@ -98,20 +98,31 @@ class Differentials(NamedTuple):
     dy: Float[Array, "3 p"]
 
 
-def hit_motion(hit: spheres.Hit, o, d, diff: Differentials):
+class Motion(NamedTuple):
+    """How each hit point moves per sample step, across and down."""
+
+    x: Float[Array, "3 p"]
+    y: Float[Array, "3 p"]
+
+
+#: Smallest |N·d| used for a hit's motion: at grazing incidence the motion is unbounded.
+MIN_INCIDENCE = 0.05
+
+
+def hit_motion(hit: spheres.Hit, o, d, diff: Differentials) -> Motion:
     """How the hit point moves per sample step: ∂P = ∂o + t·∂d + ∂t·d on the surface,
-    ∂t = −N·(∂o + t·∂d)/(N·d). At grazing incidence the motion is unbounded; |N·d| is
-    floored at 0.05 there."""
-    sg = jax.lax.stop_gradient  # a scale of edge distances: no derivative needed (see trace.segment)
+    ∂t = −N·(∂o + t·∂d)/(N·d), with |N·d| floored at `MIN_INCIDENCE`. It scales edge
+    distances only, so it carries no derivative (see `trace.segment`)."""
+    sg = jax.lax.stop_gradient
     normal, t, d = sg(hit.normal_out), sg(hit.t), sg(d)
     nd = dot(normal, d)
-    nd = jnp.where(nd < 0, jnp.minimum(nd, -0.05), jnp.maximum(nd, 0.05))
+    nd = jnp.where(nd < 0, jnp.minimum(nd, -MIN_INCIDENCE), jnp.maximum(nd, MIN_INCIDENCE))
 
     def move(do, dd):
         v = do + t * dd
         return v - dot(normal, v) / nd * d
 
-    return move(diff.ox, diff.dx), move(diff.oy, diff.dy)
+    return Motion(move(diff.ox, diff.dx), move(diff.oy, diff.dy))
 
 
 def edge_terms(o, d, ox, dx, oy, dy, c, r):
@@ -120,9 +131,7 @@ def edge_terms(o, d, ox, dx, oy, dy, c, r):
     closest (t); whether the ray starts outside the sphere.
 
     Rays (3, P) against one sphere per ray (c: (3, P)), or broadcast (3, N, P)."""
-    f = o - c
-    b = dot(f, d)
-    lvec = f - b * d
+    f, b, lvec = spheres.offsets(o, d, c)
     floor = jnp.asarray(tiny(o.dtype), o.dtype)
     l = safe_sqrt(dot(lvec, lvec), floor)
     lhat = normalize(lvec)
@@ -163,7 +172,7 @@ def _candidates(tab: spheres.Table, radii, reach, ok, width: float):
 
 def _nearest(score):
     """Per ray, the sphere of smallest finite score, or −1. (argmin and a gather: XLA's
-    CPU backend runs a min over the leading axis more than 10× slower than argmin.)"""
+    CPU backend runs a min over the leading axis much slower than argmin.)"""
     idx = jnp.argmin(score, axis=0)
     best = jnp.take_along_axis(score, idx[None], axis=0)[0]
     return jnp.where(jnp.isfinite(best), idx, -1).astype(jnp.int32)
@@ -187,7 +196,15 @@ class Flip(NamedTuple):
         return jax.tree_util.tree_map(lambda a, b: jnp.where(self.x < other.x, a, b), self, other)
 
 
-def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, dpx, dpy, width: float, sided: bool = False):
+class Shadow(NamedTuple):
+    """One light's visibility at each hit (`soft_shadow`)."""
+
+    here: Float[Array, " p"]  # at the pixel: box-filtered (box mode) or at its centre (sided mode)
+    there: Float[Array, " p"]  # sided mode: had the centre lain across its nearest shadow edge (else `here`)
+    x: Float[Array, " p"]  # sided mode: the centre's distance to that edge in box widths (inf: none)
+
+
+def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, motion: Motion, width, sided: bool) -> Shadow:
     """Visibility of one light at each hit, its nearest shadow edge box-filtered.
 
     The hard visibility of every other occluder times the soft factor 1 − (1 − τ)·α of
@@ -195,24 +212,23 @@ def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, dpx, dpy,
     footprint on the surface inside that occluder's shadow cylinder). The hit's own
     sphere stays hard: its terminator is already continuous in max(N·L, 0).
 
-    `sided`: instead (visibility, flipped visibility, x): the value at the pixel's
-    centre (the edge's hard factor, no edge derivative), the value had the centre lain
-    on the edge's other side, and the centre's distance to the edge in box widths
-    (differentiable; inf where no edge is within reach) — what a target sampled at pixel
-    centres needs (see `rtjax.render_samples(parts=True)`).
+    `sided`: instead, the value at the pixel's centre (the edge's hard factor, no edge
+    derivative), the value had the centre lain on the edge's other side, and the
+    centre's distance to the edge in box widths (differentiable; inf where no edge is
+    within reach): what a target sampled at pixel centres needs (`rtjax.edge_samples`).
     """
     n = centers.shape[0]
     ray = jnp.broadcast_to(light[:, None], hit.point.shape)
     still = jnp.zeros_like(ray)  # a parallel light: the shadow ray's direction does not move
     tab = spheres.light_table(hit.point, light, centers)
     sg = jax.lax.stop_gradient
-    reach = safe_sqrt(sg(dot(dpx, dpx) + dot(dpy, dpy)), jnp.asarray(tiny(ray.dtype), ray.dtype))
+    reach = safe_sqrt(sg(dot(motion.x, motion.x) + dot(motion.y, motion.y)), jnp.asarray(tiny(ray.dtype), ray.dtype))
     own = hit.index[None, :] == jnp.arange(n)[:, None]
     ahead = (-tab.b > tmin) & ~own & hit.found[None, :]
     edge = _candidates(tab, radii, reach, ahead, width)
     hard = spheres.transmission(hit.point, ray, centers, radii, hit.index, tmin, factor, skip=edge, tab=tab)
     c, r = _chosen_or_regular(edge, hit.point, ray, centers, radii)
-    delta_e, nx, ny, _, _ = edge_terms(hit.point, ray, dpx, still, dpy, still, c, r)
+    delta_e, nx, ny, _, _ = edge_terms(hit.point, ray, motion.x, still, motion.y, still, c, r)
     # |δ| ≥ width (a candidate only by the bound): α is 0 or 1, the hard factor exactly
     blocked = 1 - factor[jnp.maximum(edge, 0)]
     if sided:
@@ -220,9 +236,9 @@ def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, dpx, dpy,
         reached = (edge >= 0) & (jnp.abs(sg(delta_e)) < width)
         here = jnp.where(edge >= 0, 1 - blocked * inside, 1)
         there = jnp.where(reached, 1 - blocked * ~inside, here)
-        return hard * here, hard * there, jnp.where(reached, jnp.abs(delta_e) / width, jnp.inf)
-    soft = 1 - blocked * coverage(-delta_e / width, nx, ny)
-    return hard * jnp.where(edge >= 0, soft, 1)
+        return Shadow(hard * here, hard * there, jnp.where(reached, jnp.abs(delta_e) / width, jnp.inf))
+    soft = hard * jnp.where(edge >= 0, 1 - blocked * coverage(-delta_e / width, nx, ny), 1)
+    return Shadow(soft, soft, jnp.full_like(soft, jnp.inf))
 
 
 def edge_pixels(keys: Int[Array, "h+2r w+2r"], reach: int) -> Bool[Array, "h w"]:
@@ -247,8 +263,7 @@ class Best(NamedTuple):
     score: Float[Array, " p"]  # |δ| in sample steps (inf: none yet)
     edge: Int[Array, " p"]  # its sphere, or −1
     on_hit: Bool[Array, " p"]  # the ray met that sphere (else it passed beside it)
-    rays: object  # the chain's rays at that segment (trace.Rays), before it
-    diff: Differentials
+    rays: object  # the chain's rays at that segment (`trace.Rays`, with their differentials), before it
 
 
 class EdgeWatch:
@@ -259,16 +274,17 @@ class EdgeWatch:
     def __init__(self, centers, radii, tmin, width: float):
         self.centers, self.radii, self.tmin, self.width = centers, radii, tmin, width
 
-    def empty(self, rays, diff: Differentials) -> Best:
+    def empty(self, rays) -> Best:
         """No edge found yet (the fold's start)."""
         n = rays.weight.shape
-        return Best(jnp.full(n, jnp.inf, rays.o.dtype), jnp.full(n, -1, jnp.int32), jnp.zeros(n, bool), rays, diff)
+        return Best(jnp.full(n, jnp.inf, rays.o.dtype), jnp.full(n, -1, jnp.int32), jnp.zeros(n, bool), rays)
 
-    def __call__(self, rays, diff: Differentials, hit: spheres.Hit, best: Best) -> Best:
+    def __call__(self, rays, hit: spheres.Hit, best: Best) -> Best:
+        """`best` with this segment's nearest visible silhouette where it is nearer."""
         n = self.centers.shape[0]
         tab = spheres.table(rays.o, rays.d, self.centers) if hit.table is None else hit.table
         sg = jax.lax.stop_gradient
-        ox, dx, oy, dy = sg(tuple(diff))
+        ox, dx, oy, dy = sg(tuple(rays.diff))
         t = -tab.b
         # |∂o + t·∂d| over x and y: the footprint's length at t, for `_candidates`
         a, b, c = dot(ox, ox) + dot(oy, oy), dot(ox, dx) + dot(oy, dy), dot(dx, dx) + dot(dy, dy)
@@ -286,7 +302,7 @@ class EdgeWatch:
         delta = edge_terms(*sg((rays.o, rays.d, ox, dx, oy, dy, cc, rr)))[0]
         score = jnp.where((edge >= 0) & (jnp.abs(delta) < self.width), jnp.abs(delta), jnp.inf)
         edge = jnp.where(jnp.isfinite(score), edge, -1)
-        here = Best(score, edge, hit.index == edge, rays, diff)
+        here = Best(score, edge, hit.index == edge, rays)
         better = here.score < best.score
         return jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), here, best)
 
@@ -304,22 +320,23 @@ class Sides(NamedTuple):
     d_out: Float[Array, "3 p"]
 
 
-#: `both_sides(at_edge=True)`: how far past the edge, in box widths, each side is traced.
+#: `both_sides(sided=True)`: how far past the edge, in box widths, each side is traced.
 ACROSS = 0.05
 
 
-def both_sides(best: Best, centers, radii, width: float, at_edge: bool = False) -> Sides:
+def both_sides(best: Best, centers, radii, width, sided: bool) -> Sides:
     """Coverage α (differentiable in the scene) and the rays through the centroids of
     the inside and outside parts of the pixel's box, offset along the ray differentials.
 
-    `at_edge`: instead, the rays just inside and just outside the edge (`ACROSS` box
+    `sided`: instead, the rays just inside and just outside the edge (`ACROSS` box
     widths from it) where it passes nearest to the pixel's centre: the colours a
     pixel-centre sample takes when the edge moves across it."""
-    r0, df = best.rays, best.diff
+    r0 = best.rays
+    df = r0.diff
     c, r = _chosen_or_regular(best.edge, r0.o, r0.d, centers, radii)
     delta, nx, ny, _, _ = edge_terms(r0.o, r0.d, *df, c, r)
     alpha, z_in, z_out = split_box(-delta / width, nx, ny)
-    if at_edge:  # the edge lies at z = −x = δ/width along the inward normal
+    if sided:  # the edge lies at z = −x = δ/width along the inward normal
         z_in, z_out = delta / width + ACROSS, delta / width - ACROSS
 
     def ray(z):  # z along the inward normal −(nx, ny), in box sides
@@ -327,3 +344,23 @@ def both_sides(best: Best, centers, radii, width: float, at_edge: bool = False) 
         return r0.o + sx * df.ox + sy * df.oy, normalize(r0.d + sx * df.dx + sy * df.dy)
 
     return Sides(best.edge, alpha, -delta / width, *ray(z_in), *ray(z_out))
+
+
+class EdgeSamples(NamedTuple):
+    """What the silhouette-aware trace of each sample gives (`trace.trace_edges`): its
+    colour through the centre, its box-filtered colour, and both sides of its nearest
+    silhouette and shadow edge.
+
+    Colours are clamped to 0..255; inside the renderer they are (3, K) and a sample is a
+    column, `rtjax.edge_samples` returns them as (K, 3). Without a silhouette within
+    reach, blended = inside = outside = centre, alpha = 1 and x = 0; without a shadow
+    edge within reach (and always in box mode), flipped = centre and shadow_x = inf."""
+
+    centre: Float[Array, "3 k"]  # through the sample's centre: shadow edges box-filtered (box mode) or sharp (sided)
+    blended: Float[Array, "3 k"]  # α·inside + (1 − α)·outside: in box mode, the sample's box-filtered colour
+    inside: Float[Array, "3 k"]  # traced on the edge sphere's side of the silhouette
+    outside: Float[Array, "3 k"]  # traced on its other side
+    alpha: Float[Array, " k"]  # the fraction of the sample's box on the edge sphere's side
+    x: Float[Array, " k"]  # the centre's signed distance to the silhouette in box widths, > 0 inside
+    flipped: Float[Array, "3 k"]  # sided mode: the centre's colour across its nearest shadow edge
+    shadow_x: Float[Array, " k"]  # sided mode: the centre's distance to that edge in box widths (≥ 0)

@@ -3,6 +3,11 @@
 from __future__ import annotations
 
 
+def shown(token: str) -> str:
+    """A token as it reads in a one-line message: as is if printable, else escaped."""
+    return token if token.isprintable() else repr(token)[1:-1]
+
+
 class RtjaxError(Exception):
     """Base class: bad input a user can fix (a deck, an image file, an option)."""
 

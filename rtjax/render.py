@@ -1,21 +1,37 @@
-"""`render`: a scene to a float image (H, W, 3) in 0..255, jit-compiled per structure."""
+"""`render`, `render_samples` and `edge_samples`: a scene to colours, jit-compiled per structure."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .camera import pixel_grid, rays_through, subpixel_offsets
-from .edges import Differentials, edge_pixels
+from .compact import pack
+from .edges import Differentials, EdgeSamples, edge_pixels
 from .errors import RtjaxError
 from .scene import Params, Scene, Structure
-from .spheres import coherent_order, culls
-from .trace import tiled, trace, trace_edges
+from .spheres import coherent_order
+from .trace import BOX, PLAIN, SIDED, Mode, tiled, trace, trace_edges
+
+#: The widest edge box the silhouette-aware mode takes, in pixels.
+MAX_EDGE_WIDTH = 16.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Options:
+    """`render`'s options, checked and resolved (`resolve_options`): static, so they key
+    the compiled renderer."""
+
+    depth: int  # further segments after the primary ray
+    spp: int  # k for k×k samples per pixel
+    dtype: jnp.dtype  # float32 or float64
+    edges: float  # the silhouette-aware mode's edge width in pixels (0: pixel centres)
+    tile: int  # rays traced together
 
 
 def resolve_dtype(scene: Scene, dtype) -> jnp.dtype:
@@ -42,6 +58,31 @@ def resolve_depth(structure: Structure, depth: int | None) -> int:
     return int(depth) if structure.needs_secondary_rays else 0
 
 
+def resolve_tile(tile: int | None) -> int:
+    """Rays traced together: `default_tile()` for None, else a whole number ≥ 1."""
+    tile = default_tile() if tile is None else int(tile)
+    if tile < 1:
+        raise RtjaxError(f"tile must be ≥ 1, not {tile}")
+    return tile
+
+
+def default_tile() -> int:
+    """Rays traced together by default: one tile for a CPU's usual image (splitting a
+    frame only adds per-tile loop overhead there), a bound on memory elsewhere."""
+    return 1 << 17 if jax.default_backend() == "cpu" else 1 << 20
+
+
+def resolve_options(scene: Scene, depth, spp, dtype, edges, tile) -> Options:
+    """`render`'s options checked (a clear `RtjaxError` for a bad one) and resolved;
+    `render_batch` and `render_frames` share them."""
+    if int(spp) < 1:
+        raise RtjaxError(f"spp must be ≥ 1, not {spp}")
+    edges = float(edges)
+    if not (0 <= edges <= MAX_EDGE_WIDTH):
+        raise RtjaxError(f"edges (an edge width in pixels) must be in [0, {MAX_EDGE_WIDTH:g}], not {edges}")
+    return Options(resolve_depth(scene.structure, depth), int(spp), resolve_dtype(scene, dtype), edges, resolve_tile(tile))
+
+
 def render(
     scene: Scene,
     *,
@@ -61,82 +102,59 @@ def render(
       mirror or through glass) and each hit's nearest shadow edge are box-filtered over
       `edges` pixels (1 = the pixel's own box), so the image is antialiased at edges and
       its derivative includes their motion (see `rtjax.edges`). 0 (default) renders
-      pixel centres. On images of more than `EDGE_CHUNK_MIN` pixels the mode is spent
-      where edges are: every pixel is traced plainly first, and only those near a
-      change in what their chains meet are traced again in the mode (`image_edges`).
+      pixel centres. The mode is spent where edges are (`image_edges`).
     tile: rays traced together (default: 2¹⁷ on a CPU, 2²⁰ on an accelerator); the
       image does not depend on it, only speed and memory do.
 
     Differentiable in `scene.params` with jax.grad / jax.jacfwd / jax.jvp.
     """
-    depth, spp, dtype, edges, tile = resolve_options(scene, depth, spp, dtype, edges, tile)
-    return _render(scene.params.astype(dtype), scene.structure, depth, spp, tile, edges)
+    options = resolve_options(scene, depth, spp, dtype, edges, tile)
+    return _render(scene.params.astype(options.dtype), scene.structure, options)
 
 
-def resolve_options(scene: Scene, depth, spp, dtype, edges, tile) -> tuple[int, int, jnp.dtype, float, int]:
-    """`render`'s options checked and resolved (a clear `RtjaxError` for a bad one):
-    depth, spp, dtype, edges, tile; `render_batch` and `render_frames` share them."""
-    if int(spp) < 1:
-        raise RtjaxError(f"spp must be ≥ 1, not {spp}")
-    dtype = resolve_dtype(scene, dtype)
-    tile = resolve_tile(tile)
-    edges = float(edges)
-    if not (0 <= edges <= 16):
-        raise RtjaxError(f"edges (an edge width in pixels) must be in [0, 16], not {edges}")
-    return resolve_depth(scene.structure, depth), int(spp), dtype, edges, tile
+@functools.partial(jax.jit, static_argnames=("structure", "options"))
+def _render(params: Params, structure: Structure, options: Options):
+    return render_image(structure, params, options)
 
 
-def resolve_tile(tile: int | None) -> int:
-    """Rays traced together: `default_tile()` for None, else a whole number ≥ 1."""
-    tile = default_tile() if tile is None else int(tile)
-    if tile < 1:
-        raise RtjaxError(f"tile must be ≥ 1, not {tile}")
-    return tile
+def supersample(sample, spp: int, shape: tuple[int, ...], dtype) -> Array:
+    """The mean of `sample(offset)` over the k×k sub-pixel offsets (k = `spp`), summed in
+    order by a `lax.scan` (one compiled sample, whatever k)."""
+    offsets = subpixel_offsets(spp, dtype)
+    if spp == 1:
+        return sample(offsets[0])
+    total, _ = jax.lax.scan(lambda acc, off: (acc + sample(off), None), jnp.zeros(shape, dtype), offsets)
+    return total / (spp * spp)
 
 
-def default_tile() -> int:
-    """Rays traced together: bounds memory on large images; on a CPU, splitting a
-    400×294 frame further measured slower (per-tile loop overhead), so it is one tile."""
-    return 1 << 17 if jax.default_backend() == "cpu" else 1 << 20
-
-
-@functools.partial(jax.jit, static_argnames=("structure", "depth", "spp", "tile", "edges"))
-def _render(params: Params, structure: Structure, depth: int, spp: int, tile: int, edges: float = 0.0):
-    return render_image(structure, params, depth, spp, tile, edges)
-
-
-def render_image(s: Structure, p: Params, depth: int, spp: int, tile: int, edges: float) -> Float[Array, "h w 3"]:
+def render_image(s: Structure, p: Params, options: Options) -> Float[Array, "h w 3"]:
     """`render`'s image, not compiled on its own (`rtjax.batch` maps it over frames)."""
+    step = jnp.asarray(1 / options.spp, p.eye.dtype)
 
     def sample(offset):
-        step = jnp.asarray(1 / spp, offset.dtype)
-        if edges and s.width * s.height > EDGE_CHUNK_MIN:  # smaller: every pixel in one chunk
-            return image_edges(s, p, offset, step, depth, tile, edges, reach=math.ceil(edges / spp / 2))
+        if options.edges and s.width * s.height > EDGE_CHUNK_MIN:  # smaller: every pixel in one chunk
+            return image_edges(s, p, offset, step, options, reach=math.ceil(options.edges / options.spp / 2))
+        mode = BOX if options.edges else PLAIN
         xy = pixel_grid(s.width, s.height, offset)
-        if not culls(s.n_spheres):
-            return colours_at(s, p, xy, step, depth, tile, edges)
-        # large scenes cull spheres per group of consecutive rays: trace 8×8 blocks together
+        if not s.culls:
+            return colours_at(s, p, xy, step, options.depth, options.tile, mode, options.edges)
+        # culled scenes test spheres per group of consecutive rays: trace 8×8 blocks together
         order, inverse = coherent_order(s.width, s.height)
-        return colours_at(s, p, xy[:, order], step, depth, tile, edges)[:, inverse]
+        return colours_at(s, p, xy[:, order], step, options.depth, options.tile, mode, options.edges)[:, inverse]
 
-    offsets = subpixel_offsets(spp, p.eye.dtype)
-    if spp == 1:
-        image = sample(offsets[0])
-    else:
-        total, _ = jax.lax.scan(lambda acc, off: (acc + sample(off), None), jnp.zeros((3, s.height * s.width), p.eye.dtype), offsets)
-        image = total / (spp * spp)
+    image = supersample(sample, options.spp, (3, s.height * s.width), p.eye.dtype)
     return image.reshape(3, s.height, s.width).transpose(1, 2, 0)
 
 
 #: The silhouette mode over a whole image (`image_edges`) traces the pixels near edges
 #: in chunks of a sixteenth of the image (at least `EDGE_CHUNK_MIN` pixels, at most
-#: `tile`); chunks past the last of them are skipped at run time. Pixels near edges
-#: are 9–16 % of the decks in scenes/ at a 1-pixel width: two or three chunks.
+#: `tile`); chunks past the last of them are skipped at run time. Images of at most
+#: `EDGE_CHUNK_MIN` pixels are traced in the mode whole.
 EDGE_CHUNKS = 16
 EDGE_CHUNK_MIN = 4096
 
 
-def image_edges(s: Structure, p: Params, offset, step, depth: int, tile: int, edges: float, reach: int):
+def image_edges(s: Structure, p: Params, offset, step, options: Options, reach: int):
     """The silhouette mode over the image's pixels at sub-pixel `offset`: clamped
     colours (3, H·W), row-major.
 
@@ -151,40 +169,31 @@ def image_edges(s: Structure, p: Params, offset, step, depth: int, tile: int, ed
     """
     w, h, n = s.width + 2 * reach, s.height + 2 * reach, s.width * s.height
     ring = pixel_grid(w, h, offset - reach)  # the image's pixels and the ring around them
-    order, inverse = coherent_order(w, h) if culls(s.n_spheres) else (None, None)
+    order, inverse = coherent_order(w, h) if s.culls else (None, None)
     o, d = rays_through(p.eye, p.refp, p.vang, s.width, s.height, ring if order is None else ring[:, order])
-    colour, keys = tiled(lambda o, d: trace(s, p, o, d, depth, keyed=True), tile, o, d)
+    traced = tiled(lambda o, d: trace(s, p, o, d, options.depth, keyed=True), options.tile, o, d)
+    colour, keys = traced.colour, traced.key
     if order is not None:
         colour, keys = colour[:, inverse], keys[inverse]
     inner = (slice(None), slice(reach, h - reach), slice(reach, w - reach))
     colour = colour.reshape(3, h, w)[inner].reshape(3, n)
     near = edge_pixels(keys.reshape(h, w), reach).reshape(n)
     xy = pixel_grid(s.width, s.height, offset)
-    if culls(s.n_spheres):  # traced again in 8×8 blocks
+    if s.culls:  # traced again in 8×8 blocks
         order = coherent_order(s.width, s.height)[0]
         near = near[order]
-    (sel,) = jnp.nonzero(near, size=n, fill_value=0)
-    count = jnp.sum(near)
-    if culls(s.n_spheres):
-        sel = jnp.asarray(order)[sel]
-    chunk = min(tile, max(EDGE_CHUNK_MIN, -(-n // EDGE_CHUNKS)))
-    blended = colours_at(s, p, xy[:, sel], step, depth, chunk, edges, capacity=chunk, count=count)
-    # padding slots (pixel 0 repeated) write nowhere: pixel 0 may itself be near an edge
-    to = jnp.where(jnp.arange(n) < count, sel, n)
-    return jnp.clip(colour, 0, 255).at[:, to].set(blended, mode="drop")
+    packed = pack(near, n)
+    if s.culls:
+        packed = packed.renumbered(jnp.asarray(order))
+    chunk = min(options.tile, max(EDGE_CHUNK_MIN, -(-n // EDGE_CHUNKS)))
+    blended = colours_at(s, p, packed.gather(xy), step, options.depth, chunk, BOX, options.edges, capacity=chunk,
+                         count=packed.count)
+    return packed.scatter(jnp.clip(colour, 0, 255), blended)
 
 
-def colours_at(s: Structure, p: Params, xy, step, depth: int, tile: int, edges: float, parts: bool = False,
-               capacity: int | None = None, count=None):
-    """Clamped colours (3, K) seen through image positions xy (2, K) (pixels of the
-    scene's image). In the silhouette mode, `step` is the sample spacing in pixels: the
-    box over which edges are filtered is `edges`·`step` pixels wide; `parts`: (14, K),
-    the centre colours and the edge blend's parts (`trace.trace_edges`); `capacity`:
-    the edge pixels its pass 2 takes per `tile` (`trace.trace_edges`); `count`
-    (traced): only the first `count` positions are wanted (`trace.tiled`)."""
-    if isinstance(edges, (int, float)) and edges == 0:
-        o, d = rays_through(p.eye, p.refp, p.vang, s.width, s.height, xy)
-        return jnp.clip(tiled(lambda o, d: trace(s, p, o, d, depth), tile, o, d), 0, 255)
+def _differentials(s: Structure, p: Params, xy, step):
+    """Primary rays through image positions xy (2, K) and their differentials: how
+    they change per sample step (`step` pixels) across and down."""
 
     def directions(xy):
         return rays_through(p.eye, p.refp, p.vang, s.width, s.height, xy)[1]
@@ -194,29 +203,32 @@ def colours_at(s: Structure, p: Params, xy, step, depth: int, tile: int, edges: 
     _, dy = jax.jvp(directions, (xy,), (jnp.broadcast_to(jnp.stack([zero, step])[:, None], xy.shape),))
     o = jnp.broadcast_to(p.eye[:, None], d.shape)
     still = jnp.zeros_like(d)  # all primary rays leave the eye
-
-    def run(o, d, ox, dx, oy, dy):
-        return trace_edges(s, p, o, d, Differentials(ox, dx, oy, dy), depth, edges, parts, capacity)
-
-    return tiled(run, tile, o, d, still, dx, still, dy, count=count)
+    return o, d, Differentials(still, dx, still, dy)
 
 
-class EdgeSamples(NamedTuple):
-    """`render_samples(..., parts=True)`: what matching a target sampled at pixel
-    centres needs. The colour at each sample's centre (shadows sharp); for its nearest
-    silhouette, the colours traced just on the edge sphere's side of it and just on the
-    other, where it passes nearest to the centre, and the centre's signed distance to
-    that edge; for its nearest shadow edge (over the chain: seen directly, in mirrors,
-    through glass), the centre's colour had it lain on the edge's other side, and its
-    distance to that edge. Without a silhouette, inside = outside = centre and x = 0;
-    without a shadow edge within reach, flipped = centre and shadow_x = inf."""
+def colours_at(s: Structure, p: Params, xy, step, depth: int, tile: int, mode: Mode, width=0.0,
+               capacity: int | None = None, count=None) -> Float[Array, "3 k"]:
+    """Clamped colours (3, K) seen through image positions xy (2, K) (pixels of the
+    scene's image): at their centres (`PLAIN`) or box-filtered at edges (`BOX`), the
+    box `width`·`step` pixels wide (`step`: the samples' spacing in pixels).
+    `capacity`: the edge pixels pass 2 takes per `tile` (`trace.trace_edges`); `count`
+    (traced): only the first `count` positions are wanted (`trace.tiled`)."""
+    if mode == PLAIN:
+        o, d = rays_through(p.eye, p.refp, p.vang, s.width, s.height, xy)
+        return jnp.clip(tiled(lambda o, d: trace(s, p, o, d, depth).colour, tile, o, d), 0, 255)
 
-    centre: Float[Array, "k 3"]
-    inside: Float[Array, "k 3"]  # traced on the edge sphere's side
-    outside: Float[Array, "k 3"]  # traced on the other side
-    x: Float[Array, " k"]  # the centre's signed distance to the silhouette in box widths, > 0 inside
-    flipped: Float[Array, "k 3"]  # the centre's colour across its nearest shadow edge
-    shadow_x: Float[Array, " k"]  # the centre's distance to that edge in box widths (≥ 0)
+    def run(o, d, diff):
+        return trace_edges(s, p, o, d, diff, depth, width, BOX, capacity).blended
+
+    return tiled(run, tile, *_differentials(s, p, xy, step), count=count)
+
+
+def check_positions(xy, dtype) -> Array:
+    """Image positions as a (K, 2) array of `dtype`, or a clear error."""
+    xy = jnp.asarray(xy, dtype)
+    if xy.ndim != 2 or xy.shape[1] != 2:
+        raise RtjaxError(f"xy must have shape (K, 2), not {xy.shape}")
+    return xy
 
 
 def render_samples(
@@ -228,8 +240,7 @@ def render_samples(
     edges: float = 0.0,
     dtype=None,
     tile: int | None = None,
-    parts: bool = False,
-) -> Float[Array, "k 3"] | EdgeSamples:
+) -> Float[Array, "k 3"]:
     """Colours (K, 3) in 0..255 seen through K image positions `xy` (K, 2), in pixels of
     the scene's image ((i + ½, j + ½) is pixel (i, j)'s centre).
 
@@ -237,24 +248,52 @@ def render_samples(
     grid and then a band of pixels around edges with one compiled function (K fixed;
     positions, `step` and a non-zero `edges` traced). `step` is the spacing the samples
     stand for, in pixels: with `edges`, edges are box-filtered over `edges`·`step` pixels.
-    `parts` (with `edges`): an `EdgeSamples` instead, the centre colours and the edge
-    blend's parts (fitting uses them to match a target sampled at pixel centres).
     """
     dtype = resolve_dtype(scene, dtype)
-    tile = resolve_tile(tile)
-    xy = jnp.asarray(xy, dtype)
-    if xy.ndim != 2 or xy.shape[1] != 2:
-        raise RtjaxError(f"xy must have shape (K, 2), not {xy.shape}")
-    depth = resolve_depth(scene.structure, depth)
-    aware = not (isinstance(edges, (int, float)) and edges == 0)  # a traced width means the mode is on
-    if parts and not aware:
-        raise RtjaxError("parts=True needs the silhouette-aware mode (edges > 0)")
-    width = jnp.asarray(edges, dtype)
-    out = _render_samples(scene.params.astype(dtype), xy.T, jnp.asarray(step, dtype), width, scene.structure, depth, tile,
-                          aware, parts)
-    return EdgeSamples(out[:3].T, out[3:6].T, out[6:9].T, out[9], out[10:13].T, out[13]) if parts else out.T
+    xy = check_positions(xy, dtype)
+    mode = PLAIN if isinstance(edges, (int, float)) and edges == 0 else BOX  # a traced width means the mode is on
+    out = _render_samples(scene.params.astype(dtype), xy.T, jnp.asarray(step, dtype), jnp.asarray(edges, dtype),
+                          scene.structure, resolve_depth(scene.structure, depth), resolve_tile(tile), mode)
+    return out.T
 
 
-@functools.partial(jax.jit, static_argnames=("structure", "depth", "tile", "aware", "parts"))
-def _render_samples(params: Params, xy, step, width, structure: Structure, depth: int, tile: int, aware: bool, parts: bool):
-    return colours_at(structure, params, xy, step, depth, tile, width if aware else 0, parts)
+@functools.partial(jax.jit, static_argnames=("structure", "depth", "tile", "mode"))
+def _render_samples(params: Params, xy, step, width, structure: Structure, depth: int, tile: int, mode: Mode):
+    return colours_at(structure, params, xy, step, depth, tile, mode, width)
+
+
+def edge_samples(
+    scene: Scene,
+    xy,
+    *,
+    step: float = 1.0,
+    depth: int | None = None,
+    edges: float = 1.0,
+    dtype=None,
+    tile: int | None = None,
+) -> EdgeSamples:
+    """What matching a target sampled at pixel centres needs, at K image positions `xy`
+    (K, 2) (as `render_samples`): an `EdgeSamples` whose colours are (K, 3).
+
+    The colour at each sample's centre (shadows sharp); for its nearest silhouette, the
+    colours traced just on the edge sphere's side of it and just on the other, where it
+    passes nearest to the centre, and the centre's signed distance to that edge; for
+    its nearest shadow edge (over the chain: seen directly, in mirrors, through glass),
+    the centre's colour had it lain on the edge's other side, and its distance to that
+    edge. Distances are in box widths (`edges`·`step` pixels; `edges` > 0, may be traced).
+    """
+    dtype = resolve_dtype(scene, dtype)
+    xy = check_positions(xy, dtype)
+    if isinstance(edges, (int, float)) and not 0 < edges <= MAX_EDGE_WIDTH:
+        raise RtjaxError(f"edges (an edge width in pixels) must be in (0, {MAX_EDGE_WIDTH:g}], not {edges}")
+    out = _edge_samples(scene.params.astype(dtype), xy.T, jnp.asarray(step, dtype), jnp.asarray(edges, dtype),
+                        scene.structure, resolve_depth(scene.structure, depth), resolve_tile(tile))
+    return EdgeSamples(*(a.T for a in out))
+
+
+@functools.partial(jax.jit, static_argnames=("structure", "depth", "tile"))
+def _edge_samples(params: Params, xy, step, width, structure: Structure, depth: int, tile: int) -> EdgeSamples:
+    def run(o, d, diff):
+        return trace_edges(structure, params, o, d, diff, depth, width, SIDED)
+
+    return tiled(run, tile, *_differentials(structure, params, xy, step))

@@ -15,6 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .spheres import CULL_ABOVE
+
 OPAQUE, MIRROR, GLASS, TEXTURE = "opaq", "mirr", "trpa", "tmap"
 KINDS = (OPAQUE, MIRROR, GLASS, TEXTURE)
 
@@ -28,6 +30,9 @@ class Structure:
 
     `texture_files` (the `tmap` names, for writing the deck back) is excluded from
     equality so that two scenes differing only in file names share one compilation.
+    `culling`: whether rays are tested only against the spheres they can meet (the same
+    image, faster for many spheres); None (default) culls scenes of more than
+    `CULL_ABOVE` spheres.
     """
 
     kinds: tuple[str, ...]
@@ -36,6 +41,7 @@ class Structure:
     height: int
     texture_shapes: tuple[tuple[int, int], ...] = ()
     texture_files: tuple[str, ...] = dataclasses.field(default=(), compare=False)
+    culling: bool | None = None
 
     def __post_init__(self):
         bad = [k for k in self.kinds if k not in KINDS]
@@ -50,6 +56,11 @@ class Structure:
 
     def has(self, kind: str) -> bool:
         return kind in self.kinds
+
+    @property
+    def culls(self) -> bool:
+        """Whether the renderer culls spheres per group of rays (`culling`)."""
+        return self.n_spheres > CULL_ABOVE if self.culling is None else bool(self.culling)
 
     @property
     def needs_secondary_rays(self) -> bool:

@@ -19,13 +19,14 @@ length relative to the scene's scale (touching spheres), never an absolute const
 
 from __future__ import annotations
 
-import contextlib
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .compact import pack
 from .numerics import dot, normalize, safe_sqrt
 
 #: Relative size of the hit-distance floor for spheres other than the ray's origin.
@@ -44,6 +45,36 @@ def tmin_for(scale) -> Float[Array, ""]:
     return scale * TMIN_REL[jnp.dtype(scale.dtype)]
 
 
+def offsets(o, d, c):
+    """f = o − c, b = f·d and the perpendicular offset l = f − b·d of rays (o, d) (unit
+    d) from sphere centres c, all (3, ...) broadcast: every ray–sphere test starts here."""
+    f = o - c
+    b = dot(f, d)
+    return f, b, f - b * d
+
+
+class Roots(NamedTuple):
+    """Both roots of rays against spheres, and whether each may be used."""
+
+    near_ok: Bool[Array, "..."]
+    far_ok: Bool[Array, "..."]
+    near: Float[Array, "..."]
+    far: Float[Array, "..."]
+
+
+def roots(b, l2, r, is_origin, tmin) -> Roots:
+    """The roots −b ∓ √(r² − |l|²) of rays against spheres (any broadcast shapes), and
+    which may be used: met, beyond `tmin`, and by the origin rule (a ray leaving sphere
+    k's surface meets k again only at its far side, pointing inward: b < 0)."""
+    disc = r**2 - l2
+    meets = disc > 0
+    sq = jnp.sqrt(jnp.maximum(disc, 0))
+    near, far = -b - sq, -b + sq
+    near_ok = meets & (near > tmin) & ~is_origin
+    far_ok = meets & (far > tmin) & (~is_origin | (b < 0))
+    return Roots(near_ok, far_ok, near, far)
+
+
 class Table(NamedTuple):
     """Every ray against every sphere (N, P), without derivatives: what the nearest hit,
     shadow rays and the silhouette mode's edge search all start from."""
@@ -57,11 +88,7 @@ def table(o, d, centers) -> Table:
     """The `Table` of rays (o, d) (unit d) against spheres centred at `centers`, with
     l = f − b·d formed explicitly (no cancellation in |f|² − b²)."""
     o, d, centers = jax.lax.stop_gradient((o, d, centers))
-    c = centers.T[:, :, None]  # (3, N, 1)
-    f = o[:, None, :] - c  # (3, N, P)
-    dd = d[:, None, :]
-    b = dot(f, dd)
-    l = f - b * dd
+    f, b, l = offsets(o[:, None, :], d[:, None, :], centers.T[:, :, None])  # (3, N, P)
     return Table(b, dot(l, l), dot(f, f))
 
 
@@ -88,41 +115,37 @@ def light_table(o, light, centers) -> Table:
     return Table(b, l2, b * b + l2)
 
 
-def _roots(o, d, centers, radii, origin, tmin, tab: Table | None = None):
-    """For every sphere and ray (N, P): may the near / far root be used, and their values.
-
-    The origin rule: for o on sphere k, b = r·(n_out·d), so b < 0 means inward.
-    """
-    b, l2, _ = table(o, d, centers) if tab is None else tab
-    disc = radii[:, None] ** 2 - l2
-    meets = disc > 0
-    sq = jnp.sqrt(jnp.maximum(disc, 0))
-    near, far = -b - sq, -b + sq
-    is_origin = origin[None, :] == jnp.arange(centers.shape[0])[:, None]
-    near_ok = meets & (near > tmin) & ~is_origin
-    far_ok = meets & (far > tmin) & (~is_origin | (b < 0))
-    return near_ok, far_ok, near, far
+def table_roots(tab: Table, radii, origin, tmin) -> Roots:
+    """`roots` for every sphere and ray (N, P) of a `Table`."""
+    is_origin = origin[None, :] == jnp.arange(radii.shape[0])[:, None]
+    return roots(tab.b, tab.l2, radii[:, None], is_origin, tmin)
 
 
-def nearest(o, d, centers, radii, origin: Int[Array, " p"], tmin, exclude=None, active=None, tab: Table | None = None):
+def others(skip, n: int) -> Bool[Array, "n p"]:
+    """Per sphere and ray (N, P): is the sphere not the one `skip` names for the ray?"""
+    return skip[None, :] != jnp.arange(n)[:, None]
+
+
+def nearest(o, d, centers, radii, origin: Int[Array, " p"], tmin, cull: bool, exclude=None, active=None,
+            tab: Table | None = None):
     """Per ray: distance to the nearest valid root (+inf if none), which sphere, and
     whether it is that sphere's far root. Not differentiated (a discrete choice).
 
-    Scenes of more than `CULL_ABOVE` spheres test each group of rays only against the
-    spheres it can meet (`culled_nearest`): the same answer. `active` (per ray, or None
-    for all) marks the rays whose answer is used; the others may get any answer. `tab`:
-    this ray–sphere `table`, when the caller has it."""
+    `cull`: test each group of rays only against the spheres it can meet
+    (`culled_nearest`, for large scenes): the same answer. `exclude` (per ray, a sphere
+    index or −1) removes one sphere. `active` (per ray, or None for all) marks the rays
+    whose answer is used; the others may get any answer. `tab`: this ray–sphere
+    `table`, when the caller has it."""
     o, d, centers, radii = jax.lax.stop_gradient((o, d, centers, radii))
-    if culls(centers.shape[0]):
+    if cull:
         return culled_nearest(o, d, centers, radii, origin, tmin, exclude, active)
-    near_ok, far_ok, near, far = _roots(o, d, centers, radii, origin, tmin, tab)
-    if exclude is not None:  # silhouette mode: the same rays with one sphere removed
-        keep = exclude[None, :] != jnp.arange(centers.shape[0])[:, None]
+    near_ok, far_ok, near, far = table_roots(table(o, d, centers) if tab is None else tab, radii, origin, tmin)
+    if exclude is not None:
+        keep = others(exclude, centers.shape[0])
         near_ok, far_ok = near_ok & keep, far_ok & keep
     # Far roots carry a minus sign (both roots are > tmin > 0), so one argmin over |t|
     # (ties: the lowest index, as `_signed_nearest`) and one gather answer all three
-    # questions: over all spheres, measured 2.3x faster on XLA's CPU backend than
-    # `_signed_nearest`'s two reductions for a whole render of the sample deck.
+    # questions: over all spheres, faster on XLA's CPU backend than two reductions.
     signed = jnp.where(near_ok, near, jnp.where(far_ok, -far, jnp.inf))
     idx = jnp.argmin(jnp.abs(signed), axis=0).astype(jnp.int32)
     t = jnp.take_along_axis(signed, idx[None], axis=0)[0]
@@ -131,53 +154,69 @@ def nearest(o, d, centers, radii, origin: Int[Array, " p"], tmin, exclude=None, 
 
 def sphere_geometry(o, d, c, r):
     """Per ray, for one given sphere each: b, l (3, P), √disc (with a capped slope)."""
-    f = o - c
-    b = dot(f, d)
-    l = f - b * d
+    _, b, l = offsets(o, d, c)
     disc = r**2 - dot(l, l)
     sq = safe_sqrt(disc, (SLOPE_REL[jnp.dtype(o.dtype)] * r) ** 2)
     return b, l, sq
 
 
-class Hit:
-    """The nearest hit of each ray: distance, sphere index, point, outward unit normal,
-    and whether the ray enters the sphere (it met the near root, from outside).
+class Toggles(NamedTuple):
+    """How the silhouette mode alters a segment's hits, per ray (a sphere index or −1 for
+    none): `exclude` removes that sphere; `force` makes the ray see it (see `Hit`)."""
+
+    exclude: Int[Array, " p"]
+    force: Int[Array, " p"]
+
+    @staticmethod
+    def off(like) -> "Toggles":
+        none = jnp.full(like.shape, -1, jnp.int32)
+        return Toggles(none, none)
+
+
+class Hit(NamedTuple):
+    """The nearest hit of each ray (`nearest_hit`)."""
+
+    found: Bool[Array, " p"]
+    index: Int[Array, " p"]  # the sphere met, or −1
+    entering: Bool[Array, " p"]  # the ray met its near root, from outside
+    t: Float[Array, " p"]  # distance (0 where none: no inf in later arithmetic)
+    normal_out: Float[Array, "3 p"]  # outward unit normal (0 where none)
+    point: Float[Array, "3 p"]  # the hit point (the origin where none)
+    live: Bool[Array, " p"]  # the hits whose shading is used: found, on an active ray
+    table: Table | None  # every ray against every sphere (None where spheres are culled)
+
+
+def nearest_hit(o, d, centers, radii, origin, tmin, cull: bool, toggles: Toggles | None = None, active=None) -> Hit:
+    """The nearest hit of each ray: distance, sphere, point, outward normal, and whether
+    the ray enters the sphere. Differentiable in the rays and spheres (the choice of
+    sphere is not: `nearest`).
 
     The normal is (P − c)/r computed as (l ± √disc·d)/r, which stays accurate when the
-    scene sits far from the origin (no large o + t·d − c cancellation).
-
-    The silhouette mode alters the first segment per ray: `exclude` (a sphere index or
-    −1) removes one sphere; `force` (an index or −1) makes the ray see that sphere: if
-    its nearest hit is anything else, it grazes that sphere at its silhouette point
-    c + r·l̂, where the ray passes closest to it (entering).
+    scene sits far from the origin (no large o + t·d − c cancellation). `toggles` (the
+    silhouette mode's first segment): `exclude` removes one sphere; `force` makes the
+    ray see that sphere: if its nearest hit is anything else, it grazes that sphere at
+    its silhouette point c + r·l̂, where the ray passes closest to it (entering).
     """
-
-    def __init__(self, o, d, centers, radii, origin, tmin, exclude=None, force=None, active=None):
-        #: every ray against every sphere (small scenes; None where spheres are culled)
-        self.table: Table | None = None if culls(centers.shape[0]) else table(o, d, centers)
-        best, idx, far = nearest(o, d, centers, radii, origin, tmin, exclude, active, self.table)
-        found = jnp.isfinite(best)
-        if force is not None:
-            forced = (force >= 0) & (~found | (idx != force))
-            found, idx, far = found | forced, jnp.where(forced, force, idx), far & ~forced
-        self.found: Bool[Array, " p"] = found
-        self.index: Int[Array, " p"] = jnp.where(found, idx, -1)
-        self.entering: Bool[Array, " p"] = found & ~far
-        sign = jnp.where(far, 1, -1).astype(o.dtype)
-        c, r = centers.T[:, idx], radii[idx]
-        b, l, sq = sphere_geometry(o, d, c, r)
-        t = -b + sign * sq
-        normal = (l + sign * sq * d) / r
-        point = o + t * d
-        if force is not None:
-            t = jnp.where(forced, -b, t)
-            normal = jnp.where(forced, normalize(l), normal)
-            point = jnp.where(forced, c + r * normal, point)
-        self.t = jnp.where(found, t, 0)  # no inf in later arithmetic
-        self.normal_out = jnp.where(found, normal, 0)
-        self.point = jnp.where(found, point, o)
-        #: the hits whose shading is used: found, on an active ray (see `nearest`)
-        self.live: Bool[Array, " p"] = found if active is None else found & active
+    tab = None if cull else table(o, d, centers)
+    exclude = None if toggles is None else toggles.exclude
+    best, idx, far = nearest(o, d, centers, radii, origin, tmin, cull, exclude, active, tab)
+    found = jnp.isfinite(best)
+    if toggles is not None:
+        forced = (toggles.force >= 0) & (~found | (idx != toggles.force))
+        found, idx, far = found | forced, jnp.where(forced, toggles.force, idx), far & ~forced
+    sign = jnp.where(far, 1, -1).astype(o.dtype)
+    c, r = centers.T[:, idx], radii[idx]
+    b, l, sq = sphere_geometry(o, d, c, r)
+    t = -b + sign * sq
+    normal = (l + sign * sq * d) / r
+    point = o + t * d
+    if toggles is not None:
+        t = jnp.where(forced, -b, t)
+        normal = jnp.where(forced, normalize(l), normal)
+        point = jnp.where(forced, c + r * normal, point)
+    return Hit(found=found, index=jnp.where(found, idx, -1), entering=found & ~far, t=jnp.where(found, t, 0),
+               normal_out=jnp.where(found, normal, 0), point=jnp.where(found, point, o),
+               live=found if active is None else found & active, table=tab)
 
 
 def transmission(o, d, centers, radii, origin, tmin, opacity_factor, skip=None, active=None, grid=None,
@@ -189,14 +228,15 @@ def transmission(o, d, centers, radii, origin, tmin, opacity_factor, skip=None, 
     A sphere counts if the ray meets it ahead of the origin (its far root is ahead).
     `skip` (per ray, a sphere index or −1) leaves one sphere out (the silhouette mode
     accounts for it smoothly). `grid`: the `light_grid` of the direction d every ray
-    shares, for large scenes (`culled_transmission`; `active` as in `nearest`); `tab`:
+    shares, for culled scenes (`culled_transmission`; `active` as in `nearest`); `tab`:
     the shadow rays' `table`, when the caller has it.
     """
     if grid is not None:
         return culled_transmission(o, grid, centers, radii, origin, tmin, opacity_factor, skip, active)
-    _, blocked, _, _ = _roots(*jax.lax.stop_gradient((o, d, centers, radii)), origin, tmin, tab)
+    radii = jax.lax.stop_gradient(radii)
+    _, blocked, _, _ = table_roots(table(o, d, centers) if tab is None else tab, radii, origin, tmin)
     if skip is not None:
-        blocked = blocked & (skip[None, :] != jnp.arange(centers.shape[0])[:, None])
+        blocked = blocked & others(skip, centers.shape[0])
     factor = jnp.where(blocked, opacity_factor[:, None], 1)
     return jnp.prod(factor, axis=0)
 
@@ -233,8 +273,10 @@ def transmission(o, d, centers, radii, origin, tmin, opacity_factor, skip=None, 
 # by `_ANGLE_SLACK` radians.
 
 #: Scenes with at most this many spheres test every ray against every sphere (the
-#: fast path for small scenes); larger ones cull.
+#: fast path for small scenes); larger ones cull (`Structure.culls`).
 CULL_ABOVE = 32
+#: Candidate spheres listed per group of rays and per cell of a light's grid, at most.
+MAX_CANDIDATES = 32
 #: Rays per group (8×8 pixels when rays come in `coherent_order`).
 GROUP = 64
 #: Rays per chunk of the culled loops.
@@ -242,31 +284,9 @@ CHUNK = 2048
 _ANGLE_SLACK = 1e-3
 _RADIUS_SLACK = 1e-4
 
-_BRUTE = [False]
-
-
-def culls(n: int) -> bool:
-    """Whether scenes of `n` spheres are culled (decided when a render is compiled)."""
-    return n > CULL_ABOVE and not _BRUTE[0]
-
-
-@contextlib.contextmanager
-def brute_force():
-    """Within this block, renders test every ray against every sphere whatever the
-    scene's size (to compare with culling: tests, `rtjax bench --scale`). JAX's compile
-    caches are cleared on entry and exit (compiled renders do not know this switch)."""
-    _BRUTE[0] = True
-    jax.clear_caches()
-    try:
-        yield
-    finally:
-        _BRUTE[0] = False
-        jax.clear_caches()
-
-
 def capacity(n: int) -> int:
-    """Candidate spheres per group of rays, and per cell of a light's grid (static, ≤ 32)."""
-    return min(n, 32)
+    """Candidate spheres per group of rays, and per cell of a light's grid (static)."""
+    return min(n, MAX_CANDIDATES)
 
 
 def grid_side(n: int) -> int:
@@ -277,9 +297,7 @@ def grid_side(n: int) -> int:
 def coherent_order(width: int, height: int, block: int = 8):
     """A permutation of row-major pixel indices visiting the image in `block`×`block`
     tiles (row-major inside each): consecutive rays then form compact groups (used by
-    `render` when scenes are large enough to cull). Returns (order, inverse) as NumPy."""
-    import numpy as np
-
+    `render` when scenes are culled). Returns (order, inverse) as NumPy."""
     j, i = np.divmod(np.arange(width * height), width)
     key = ((j // block) * (-(-width // block)) + i // block) * block * block + (j % block) * block + i % block
     order = np.argsort(key, kind="stable")
@@ -331,20 +349,11 @@ def group_candidates(o, d, active, centers, radii, tmin, k: int):
     return first_k(ok & jnp.any(active, axis=-1)[:, None], k)
 
 
-def _pair_roots(o, d, c, r, origin, k, tmin):
-    """`_roots` for rays against candidate spheres, broadcast (o, d: (3, ...); c: (3, ...);
-    r, origin, sphere indices k: (...)): the same arithmetic per ray and sphere."""
-    f = o - c
-    b = dot(f, d)
-    l = f - b * d
-    disc = r**2 - dot(l, l)
-    meets = disc > 0
-    sq = jnp.sqrt(jnp.maximum(disc, 0))
-    near, far = -b - sq, -b + sq
-    is_origin = origin == k
-    near_ok = meets & (near > tmin) & ~is_origin
-    far_ok = meets & (far > tmin) & (~is_origin | (b < 0))
-    return near_ok, far_ok, near, far
+def pair_roots(o, d, c, r, origin, k, tmin) -> Roots:
+    """`roots` of rays against candidate spheres, broadcast (o, d: (3, ...); c: (3, ...);
+    r, origin, sphere indices k: (...))."""
+    _, b, l = offsets(o, d, c)
+    return roots(b, dot(l, l), r, origin == k, tmin)
 
 
 def _signed_nearest(near_ok, far_ok, near, far, k, axis):
@@ -365,21 +374,22 @@ def _signed_nearest(near_ok, far_ok, near, far, k, axis):
 def _packed(active, p: int):
     """Indices of the active rays first (in order), padded with p to whole chunks, and
     how many chunks hold them."""
-    # the barrier keeps XLA from constant-folding this when `active` is known (slow compiles)
-    (order,) = jnp.nonzero(jax.lax.optimization_barrier(active), size=p, fill_value=p)
+    packed = pack(active, p)
+    order = packed.target
     pad = -(-p // CHUNK) * CHUNK - p
     if pad:
         order = jnp.concatenate([order, jnp.full((pad,), p, order.dtype)])
-    return order, (jnp.sum(active) + CHUNK - 1) // CHUNK
+    return order, (packed.count + CHUNK - 1) // CHUNK
 
 
-def _chunk_loop(order, chunks, body, init):
-    """body(sel, ok, carry) → carry over the chunks of packed rays (a `while_loop`)."""
+def _chunk_loop(order, chunks, p: int, body, init):
+    """body(sel, ok, carry) → carry over the chunks of packed rays (a `while_loop`);
+    `ok`: the slot holds one of the `p` rays (not padding)."""
 
     def step(state):
         i, carry = state
         sel = jax.lax.dynamic_slice(order, (i * CHUNK,), (CHUNK,))
-        return i + 1, body(sel, sel < order.shape[0], carry)
+        return i + 1, body(sel, sel < p, carry)
 
     return jax.lax.while_loop(lambda s: s[0] < chunks, step, (jnp.zeros((), chunks.dtype), init))[1]
 
@@ -403,15 +413,15 @@ def culled_nearest(o, d, centers, radii, origin, tmin, exclude=None, active=None
         oc, dc, org, exc = o[:, at], d[:, at], origin[at], exclude[at]
 
         def all_spheres(_):
-            near_ok, far_ok, near, far = _pair_roots(
+            near_ok, far_ok, near, far = pair_roots(
                 oc[:, None, :], dc[:, None, :], centers.T[:, :, None], radii[:, None], org[None, :], every[:, None], tmin)
-            keep = exc[None, :] != every[:, None]
+            keep = others(exc, n)
             return _signed_nearest(near_ok & keep, far_ok & keep, near, far, every[:, None], 0)
 
         def grouped(cv):
             cand, valid = cv
             kk = cand[..., None]  # (G, K, 1)
-            near_ok, far_ok, near, far = _pair_roots(
+            near_ok, far_ok, near, far = pair_roots(
                 oc.reshape(3, g, 1, GROUP), dc.reshape(3, g, 1, GROUP), jnp.moveaxis(centers[cand], -1, 0)[..., None],
                 radii[cand][..., None], org.reshape(g, 1, GROUP), kk, tmin)
             keep = valid[..., None] & (exc.reshape(g, 1, GROUP) != kk)
@@ -425,7 +435,7 @@ def culled_nearest(o, d, centers, radii, origin, tmin, exclude=None, active=None
         return t_out.at[sel].set(t, mode="drop"), idx_out.at[sel].set(idx, mode="drop")
 
     init = (jnp.full((p,), jnp.inf, o.dtype), jnp.zeros((p,), jnp.int32))
-    t, idx = _chunk_loop(order, chunks, body, init)
+    t, idx = _chunk_loop(order, chunks, p, body, init)
     return jnp.abs(t), idx, t < 0
 
 
@@ -475,7 +485,7 @@ def culled_transmission(o, grid: LightGrid, centers, radii, origin, tmin, factor
         active = jnp.ones((p,), bool)
     o_sg, centers_sg, radii_sg = jax.lax.stop_gradient((o, centers, radii))
     cells = _cell_of(grid, o_sg)
-    table = jnp.concatenate([centers_sg, radii_sg[:, None]], axis=1)[grid.cand]  # (C, K, 4): per cell, its spheres
+    listing = jnp.concatenate([centers_sg, radii_sg[:, None]], axis=1)[grid.cand]  # (C, K, 4): per cell, its spheres
     k = grid.cand.shape[1]
     bit = (jnp.uint32(1) << jnp.arange(k, dtype=jnp.uint32))
     light = grid.light[:, None]
@@ -483,9 +493,9 @@ def culled_transmission(o, grid: LightGrid, centers, radii, origin, tmin, factor
     def body(sel, ok, bits):
         at = jnp.minimum(sel, p - 1)
         c = cells[at]
-        sph, cand, valid = table[c], grid.cand[c], grid.valid[c]  # (CHUNK, K, ·): row gathers
+        sph, cand, valid = listing[c], grid.cand[c], grid.valid[c]  # (CHUNK, K, ·): row gathers
         oc = o_sg[:, at][:, :, None]
-        _, blocked, _, _ = _pair_roots(oc, light[:, :, None], jnp.moveaxis(sph[..., :3], -1, 0), sph[..., 3],
+        _, blocked, _, _ = pair_roots(oc, light[:, :, None], jnp.moveaxis(sph[..., :3], -1, 0), sph[..., 3],
                                        origin[at][:, None], cand, tmin)
         blocked = blocked & valid
         if skip is not None:
@@ -495,15 +505,15 @@ def culled_transmission(o, grid: LightGrid, centers, radii, origin, tmin, factor
 
     def listed(_):
         order, chunks = _packed(active, p)
-        bits = _chunk_loop(order, chunks, body, jnp.zeros((p,), jnp.uint32))
+        bits = _chunk_loop(order, chunks, p, body, jnp.zeros((p,), jnp.uint32))
         blocked = (bits[:, None] & bit) != 0  # (P, K)
         return jnp.prod(jnp.where(blocked, factor[grid.cand][cells], 1), axis=1)
 
     def all_spheres(_):
         d = jnp.broadcast_to(light, o.shape)
-        _, blocked, _, _ = _roots(o_sg, d, centers_sg, radii_sg, origin, tmin)
+        _, blocked, _, _ = table_roots(table(o_sg, d, centers_sg), radii_sg, origin, tmin)
         if skip is not None:
-            blocked = blocked & (skip[None, :] != jnp.arange(centers.shape[0])[:, None])
+            blocked = blocked & others(skip, centers.shape[0])
         return jnp.prod(jnp.where(blocked, factor[:, None], 1), axis=0)
 
     return jax.lax.cond(grid.over, all_spheres, listed, None)

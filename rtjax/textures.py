@@ -24,18 +24,13 @@ Derivatives (DECK.md §6: never NaN):
 
 The colour is linear in the texels, so a texture can be a fitted parameter.
 
-Speed: XLA's CPU atan2 costs about 20–25 ns per element (a scalar libm call), more
-than the rest of a segment's texture work. In float32, angles therefore come from
-`fast_atan2`, a branch-free polynomial (Abramowitz & Stegun 4.4.49) accurate to about
-3e-7 rad, about float32 rounding: u is off by at most ~5e-8, far below a texel.
-float64 (gradient checks, comparisons with the reference) uses the exact atan2.
-A cheap polynomial alone does not help inside the renderer: XLA's CPU fusion inlines
-cheap elementwise producers into every consumer, so (u, v) and the index arithmetic
-were recomputed per colour channel and per light. `textured_diffuse` therefore
-computes them under `lax.cond`s, which materialise each stage once (and skip it when
-no ray of a segment hits a textured sphere). Measured on the Level 4 deck, 320 × 210,
-CPU time per render against the same deck with plain opaque spheres: +32 % (the
-first version, one texture at a time with XLA's atan2: +148 %); its gradient +35 %.
+Speed: in float32, angles come from `fast_atan2`, a branch-free polynomial (Abramowitz &
+Stegun 4.4.49) accurate to about 3e-7 rad, about float32 rounding (u is off by at most
+~5e-8, far below a texel): XLA's CPU atan2 is a scalar library call. float64 (gradient
+checks, comparisons with the reference) uses the exact atan2. `textured_diffuse` runs
+its stages under `lax.cond`s, which materialise each stage once (and skip it when no ray
+of a segment hits a textured sphere) where XLA's CPU fusion would recompute them per
+colour channel and per light.
 
 Several textures of different sizes are sampled in one pass: their texels are laid
 end to end in one (3, Σ h·w) array and each ray looks up its own texture's width,
@@ -169,11 +164,9 @@ def textured_diffuse(
     and sizes of the textures.
 
     The work runs under `lax.cond`s on "some ray hits a textured sphere": skipped when
-    none does, and, more importantly on a CPU, each stage's result is materialised
-    once. XLA's CPU fusion would otherwise inline the cheap-but-long (u, v) polynomial
-    and index arithmetic into every consumer, once per colour channel and per light,
-    which measured slower than the lookup itself. Both modes of differentiation go
-    through `lax.cond`.
+    none does, and each stage's result is materialised once (XLA's CPU fusion would
+    otherwise inline the (u, v) polynomial and index arithmetic into every consumer).
+    Both modes of differentiation go through `lax.cond`.
     """
     if not textures:
         return d

@@ -21,6 +21,8 @@ import numpy as np
 import fitting
 import rtjax
 
+rtjax.tune_cpu()  # before any JAX computation (rtjax.xla)
+
 
 def run(truth, target, amplitude: float, seed: int, **kw) -> dict:
     rng = np.random.default_rng(1000 + seed)

@@ -21,6 +21,8 @@ import jax
 import numpy as np
 
 import rtjax
+
+rtjax.tune_cpu()  # before any JAX computation (rtjax.xla)
 from rtjax import batch
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

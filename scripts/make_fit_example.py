@@ -15,6 +15,8 @@ import numpy as np
 
 import rtjax
 
+rtjax.tune_cpu()  # before any JAX computation (rtjax.xla)
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 OUT = os.path.join(ROOT, "scenes", "fit")
 

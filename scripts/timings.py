@@ -19,6 +19,8 @@ import jax.numpy as jnp
 
 import rtjax
 
+rtjax.tune_cpu()  # before any JAX computation (rtjax.xla)
+
 
 def timed(fn, *args, runs: int):
     t = time.perf_counter()

@@ -1,5 +1,5 @@
 """Shared test setup: 64-bit JAX (float64 where a test asks; float32 stays the default
-for scenes loaded from decks), the reference on the import path, and small helpers."""
+for scenes loaded from decks), tests/ on the import path, and small helpers."""
 
 from __future__ import annotations
 
@@ -12,8 +12,11 @@ import threading
 
 import jax
 
+import rtjax
+
+rtjax.tune_cpu()  # before any JAX computation (rtjax.xla)
 jax.config.update("jax_enable_x64", True)
-# the command's compilation cache (rtjax.cli.cache_dir) stays off in tests, subprocesses
+# the command's compilation cache (rtjax.xla.cache_dir) stays off in tests, subprocesses
 # included; tests/test_cli.py turns it on where it checks it
 os.environ.setdefault("RTJAX_CACHE", "off")
 
@@ -23,8 +26,6 @@ SCENES = os.path.join(ROOT, "scenes")
 sys.path.insert(0, HERE)
 
 import pytest  # noqa: E402
-
-import rtjax  # noqa: E402
 
 
 @contextlib.contextmanager
@@ -156,6 +157,8 @@ _JOBS: list[Job] = []
 
 
 def pytest_collection_finish(session):
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        return  # several workers: each job starts when a test of the worker that runs it needs it
     modules = []
     for item in session.items:
         module = getattr(item, "module", None)

@@ -24,6 +24,8 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 import rtjax  # noqa: E402
+
+rtjax.tune_cpu()  # before any JAX computation (rtjax.xla)
 from rtjax import batch  # noqa: E402
 
 def timed(fn):

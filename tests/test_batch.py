@@ -25,11 +25,10 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 
 def launch(*args: str, popen=subprocess.Popen) -> subprocess.Popen:
     """tests/multidevice.py in a fresh process with 4 forced CPU devices (started by
-    `popen`, e.g. a conftest.Job's). rtjax adds its own XLA flag to XLA_FLAGS
-    (appending), so the forced device count survives."""
+    `popen`, e.g. a conftest.Job's). `rtjax.tune_cpu` appends its own XLA flag to
+    XLA_FLAGS, so the forced device count survives."""
     flags = (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4").strip()
     env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
-    env.pop("RTJAX_KEEP_XLA_FLAGS", None)
     return popen([sys.executable, os.path.join(HERE, "multidevice.py"), *args], env=env,
                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
@@ -81,6 +80,7 @@ def batch_calls(monkeypatch) -> list[int]:
     return calls
 
 
+@pytest.mark.slow
 def test_frames_sharing_a_structure_render_in_one_call(batch_calls):
     scenes = [f.scene for f in rtjax.parse_deck(SWEEP).frames]
     assert [i for _, i in batch.group_by_structure(scenes)] == [[0, 1, 2], [3]]
@@ -91,6 +91,7 @@ def test_frames_sharing_a_structure_render_in_one_call(batch_calls):
     assert np.shape(images[3]) == (9, 12, 3)
 
 
+@pytest.mark.slow
 def test_a_parameter_sweep_is_one_batched_call():
     scene = rtjax.parse_deck(SMALL + "rend a.ras\n").frames[0].scene
     kes = np.linspace(0.0, 1.0, 5, dtype=np.float32)
@@ -103,6 +104,7 @@ def test_a_parameter_sweep_is_one_batched_call():
     assert np.array_equal(np.asarray(rtjax.render_batch(scene.structure, params, mode="map")), images)
 
 
+@pytest.mark.slow
 def test_a_sweep_in_the_silhouette_mode_equals_render():
     """Whole frames in the silhouette mode go through `render`'s own path (pixels near
     edges chosen from the plain trace's keys, above 4096 pixels): bit for bit, in one
@@ -160,6 +162,7 @@ def test_cli_more_devices_than_there_are_is_one_line(tmp_path, capsys):
 # ---- four forced host devices (the subprocess) --------------------------------------------
 
 
+@pytest.mark.slow
 def test_sharded_sample_deck_equals_single_device_bit_for_bit(four):
     r = four()
     assert r["devices"] == 4 and r["platform"] == "cpu"
@@ -168,6 +171,7 @@ def test_sharded_sample_deck_equals_single_device_bit_for_bit(four):
     assert r["sample_full_4"] is True
 
 
+@pytest.mark.slow
 def test_batched_multi_frame_deck_equals_frame_by_frame(four):
     r = four()
     assert r["multi_batched_1"] == [True, True, True]  # one device, lax.map inside the call (a CPU's default)
@@ -176,6 +180,7 @@ def test_batched_multi_frame_deck_equals_frame_by_frame(four):
     assert r["multi_pixels_4"] == [True, True, True]  # every frame's pixels over 4 devices, vmapped
 
 
+@pytest.mark.slow
 def test_cli_devices_4_writes_the_frame_by_frame_images(four):
     r = four()
     assert r["cli_code"] == 0

@@ -1,10 +1,8 @@
-"""`rtjax bench` on a tiny deck (the machinery, not the speed), and sphere culling: the
-same images and derivatives as testing every ray against every sphere.
+"""`rtjax bench` on a tiny deck (the machinery, not the speed).
 
 No timing is asserted anywhere: benchmarks print figures, tests check their shape. So
 the bench run and the LM step compile with XLA's backend optimisation off
-(`conftest.quick_xla`: the same program, half the compile time); the comparisons of
-culled and brute-force renders and derivatives run the optimised build.
+(`conftest.quick_xla`: the same program, half the compile time).
 """
 
 from __future__ import annotations
@@ -12,14 +10,13 @@ from __future__ import annotations
 import json
 import os
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import SCENES, quick_xla
 
 import rtjax
-from rtjax import bench, spheres
+from rtjax import bench
+from rtjax.bench import derivatives
 from rtjax.cli import main
 
 DECK = os.path.join(SCENES, "ex2s3.dat")
@@ -33,6 +30,7 @@ def tiny_result():
         return bench.run(DECK, cfg, log=lambda line: None)
 
 
+@pytest.mark.slow
 def test_bench_json_fields_and_plausible_values(tiny_result, tmp_path):
     res = tiny_result
     paths = bench.write_outputs(res, str(tmp_path), "tiny")
@@ -85,6 +83,7 @@ def test_bench_json_fields_and_plausible_values(tiny_result, tmp_path):
     assert "reference" in text and "NumPy" in text and "×" in text
 
 
+@pytest.mark.slow
 def test_plots_leave_the_callers_backend_alone(tiny_result, tmp_path, monkeypatch):
     """The bench's and the fit report's plots draw on Figures of their own: no
     `matplotlib.use`, which would switch a notebook's backend."""
@@ -116,6 +115,7 @@ def test_image_errors():
     assert bench.image_errors(small, np.full((4, 6, 3), 10.0))["max_levels"] == 0
 
 
+@pytest.mark.slow
 def test_lm_step_runs():
     """The Levenberg–Marquardt step the bench times moves the centres (tiny image)."""
     scene = rtjax.load_deck(DECK).frames[0].scene.resized(12)
@@ -125,7 +125,7 @@ def test_lm_step_runs():
         return rtjax.render(rtjax.Scene(st, p))
 
     with quick_xla(clear=True):
-        step = bench._lm_step(st, p0, image)
+        step = derivatives.lm_step(p0, image)
         y = np.asarray(step())
     assert y.shape == (8, 3) and np.all(np.isfinite(y))
 
@@ -148,125 +148,3 @@ def test_random_scene_is_non_overlapping():
     np.fill_diagonal(gap, np.inf)
     assert gap.min() > 0 and scene.structure.n_spheres == 200
     assert {"opaq", "mirr", "trpa"} <= set(scene.structure.kinds)
-
-
-# -- culling ---------------------------------------------------------------------------------
-
-
-def test_small_scenes_stay_on_the_brute_force_path():
-    assert not spheres.culls(spheres.CULL_ABOVE) and spheres.culls(spheres.CULL_ABOVE + 1)
-
-
-def _random_rays(rng, centers, radii, p):
-    """Incoherent rays in random order: from outside, and from sphere surfaces (both ways)."""
-    n = len(radii)
-    o = rng.uniform(-12, 12, (3, p))
-    d = rng.normal(size=(3, p))
-    origin = np.full(p, -1, np.int32)
-    on = rng.uniform(size=p) < 0.5
-    k = rng.integers(0, n, p)
-    normal = rng.normal(size=(3, p))
-    normal /= np.linalg.norm(normal, axis=0)
-    o[:, on] = (centers[k].T + radii[k] * normal)[:, on]
-    origin[on] = k[on]
-    return o, d / np.linalg.norm(d, axis=0), origin
-
-
-def test_culled_nearest_and_transmission_equal_brute_force():
-    """Random rays (not a camera's: the hard case for culling), rays leaving spheres,
-    an excluded sphere per ray, a duplicated sphere (exact ties), inactive rays."""
-    rng = np.random.default_rng(0)
-    scene = bench.random_scene(150, seed=1)
-    centers = np.array(scene.params.centers)
-    centers[7] = centers[3]  # a duplicate: ties must resolve to the lower index
-    radii = np.asarray(scene.params.radii).copy()
-    radii[7] = radii[3]
-    p = 5000
-    o, d, origin = _random_rays(rng, centers, radii, p)
-    eye = np.asarray(scene.params.eye, np.float64)[:, None]  # and rays from one point toward the spheres
-    aim = centers[rng.integers(0, len(radii), p)].T + rng.normal(size=(3, p))
-    from_eye = rng.uniform(size=p) < 0.3
-    o[:, from_eye] = eye
-    d[:, from_eye] = ((aim - eye) / np.linalg.norm(aim - eye, axis=0))[:, from_eye]
-    origin[from_eye] = -1
-    active = rng.uniform(size=p) < 0.8
-    exclude = np.where(rng.uniform(size=p) < 0.2, rng.integers(0, len(radii), p), -1).astype(np.int32)
-    args = [jnp.asarray(a, jnp.float32) for a in (o, d, centers, radii)]
-    tmin = spheres.tmin_for(spheres.scene_scale(args[2], args[3], jnp.asarray(scene.params.eye)))
-    origin, exclude, active = jnp.asarray(origin), jnp.asarray(exclude), jnp.asarray(active)
-
-    with spheres.brute_force():
-        t_b, i_b, f_b = (np.asarray(a) for a in spheres.nearest(*args, origin, tmin, exclude))
-    t_c, i_c, f_c = (np.asarray(a) for a in spheres.culled_nearest(*args, origin, tmin, exclude, active))
-    a = np.asarray(active)
-    assert np.isfinite(t_b[a]).sum() > 1000  # most active rays hit something
-    # the same sphere and root for every ray; the distance itself is recomputed from the
-    # index, differentiably, by `Hit`, so only its rounding (fused differently) may differ
-    np.testing.assert_array_equal(i_c[a], i_b[a])
-    np.testing.assert_array_equal(np.isfinite(t_c[a]), np.isfinite(t_b[a]))
-    np.testing.assert_allclose(t_c[a], t_b[a], rtol=1e-3)
-    np.testing.assert_array_equal(f_c[a], f_b[a])
-    assert not np.any(np.isfinite(t_c[~a]))  # inactive rays: no hit
-
-    factor = jnp.asarray(np.where(rng.uniform(size=len(radii)) < 0.3, rng.uniform(0.2, 0.8, len(radii)) ** 2, 0), jnp.float32)
-    for light in (np.array([0.5, 0.5, 2.0]), np.array([0.0, 0.0, -1.0]), np.array([1.0, 0.0, 0.0])):
-        light = jnp.asarray(light / np.linalg.norm(light), jnp.float32)
-        ray = jnp.broadcast_to(light[:, None], args[0].shape)
-        brute = np.asarray(spheres.transmission(args[0], ray, args[2], args[3], origin, tmin, factor, skip=exclude))
-        grid = spheres.light_grid(light, args[2], args[3], tmin)
-        assert not bool(grid.over)
-        culled = np.asarray(spheres.transmission(args[0], ray, args[2], args[3], origin, tmin, factor, skip=exclude,
-                                                 active=active, grid=grid))
-        assert 0 < np.mean(brute[a] == 0) < 1
-        np.testing.assert_array_equal(culled[a], brute[a])
-
-
-@pytest.fixture(scope="module")
-def scene200():
-    return bench.random_scene(200, seed=1, size=24)
-
-
-def test_culled_render_equals_brute_force(scene200):
-    """A random 200-sphere scene: the image (pixel centres and 2×2 samples) is the same
-    float for float with culling as with every ray against every sphere."""
-    assert spheres.culls(scene200.structure.n_spheres)
-    culled = [np.asarray(rtjax.render(scene200, spp=k)) for k in (1, 2)]
-    with spheres.brute_force():
-        brute = [np.asarray(rtjax.render(scene200, spp=k)) for k in (1, 2)]
-    for c, b in zip(culled, brute):
-        assert np.ptp(c) > 50  # a real picture
-        np.testing.assert_array_equal(c, b)
-
-
-def test_culled_derivatives_equal_brute_force(scene200):
-    """Reverse gradient in every parameter and a forward derivative in the centres."""
-    st, p0 = scene200.structure, scene200.params
-
-    def loss(p):
-        return rtjax.render(rtjax.Scene(st, p)).mean()
-
-    def jvp(p):
-        tangent = jax.tree_util.tree_map(jnp.zeros_like, p)
-        tangent = bench._replace_params(tangent, centers=jnp.ones_like(p.centers))
-        return jax.jvp(lambda q: rtjax.render(rtjax.Scene(st, q)), (p,), (tangent,))[1]
-
-    # the optimised build (not conftest.quick_xla): its LLVM -O0 build measured culled
-    # and brute-force centre gradients 1.5e-4 apart, more than the tolerance below
-    g_c, j_c = jax.grad(loss)(p0), jvp(p0)
-    with spheres.brute_force():
-        g_b, j_b = jax.grad(loss)(p0), jvp(p0)
-    for name in ("centers", "radii", "diffuse", "kt", "ior", "light_dirs", "eye"):
-        a, b = np.asarray(getattr(g_c, name)), np.asarray(getattr(g_b, name))
-        assert np.all(np.isfinite(a))
-        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7 * max(1.0, np.abs(b).max()), err_msg=name)
-    assert np.abs(np.asarray(g_c.centers)).max() > 0
-    np.testing.assert_allclose(np.asarray(j_c), np.asarray(j_b), rtol=1e-5, atol=1e-4)
-
-
-@pytest.mark.slow
-def test_culled_silhouette_mode_equals_brute_force(scene200):
-    """The silhouette-aware mode goes through the same culled hits (excluded spheres)."""
-    culled = np.asarray(rtjax.render(scene200, edges=1.0))
-    with spheres.brute_force():
-        brute = np.asarray(rtjax.render(scene200, edges=1.0))
-    np.testing.assert_array_equal(culled, brute)

@@ -16,6 +16,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
+import rtjax
+
 from rtjax import cli
 from rtjax.sunraster import read_sunraster
 
@@ -91,6 +93,7 @@ def test_sample_deck_renders_a_sun_raster_pillow_reads(tmp_path):
     assert len(np.unique(rgb.reshape(-1, 3), axis=0)) > 1000  # a rendered scene, not a flat fill
 
 
+@pytest.mark.slow
 def test_compiled_programs_are_kept_between_runs(tmp_path):
     """RTJAX_CACHE names the folder where the command keeps XLA's compiled programs; a
     second run of the same deck loads them and writes the same image."""
@@ -114,7 +117,7 @@ def test_cache_dir_follows_the_environment(monkeypatch, env, expected):
     monkeypatch.delenv("RTJAX_CACHE", raising=False)
     for k, v in env.items():
         monkeypatch.setenv(k, v)
-    assert cli.cache_dir() == expected
+    assert rtjax.xla.cache_dir() == expected
 
 
 def test_bad_deck_subprocess_exit_2_one_line_nothing_written(tmp_path):
@@ -194,7 +197,7 @@ def test_bad_decks_exit_2_and_write_nothing(tmp_path, capsys, monkeypatch, text,
     def no_render(*a, **k):
         raise AssertionError("nothing may be rendered for a deck that is refused")
 
-    monkeypatch.setattr(sys.modules["rtjax.render"], "render", no_render)
+    monkeypatch.setattr(rtjax.batch, "render", no_render)
     deck = write_deck(tmp_path, text, "bad.dat")
     out = tmp_path / "out"
     out.mkdir()
@@ -277,7 +280,7 @@ def test_non_finite_render_is_an_error_not_an_image(tmp_path, capsys, monkeypatc
         s = scene.structure
         return jnp.full((s.height, s.width, 3), 10.0).at[3, 4, 1].set(jnp.nan)
 
-    monkeypatch.setattr(sys.modules["rtjax.render"], "render", nan_render)
+    monkeypatch.setattr(rtjax.batch, "render", nan_render)
     deck = write_deck(tmp_path, SMALL + "rend a.ras\n")
     code, stdout, err = render_main(capsys, deck, "-o", tmp_path / "out", "--png")
     assert code == 2 and stdout == ""
@@ -302,7 +305,7 @@ def test_allow_large_without_rendering_a_huge_image(tmp_path, capsys, monkeypatc
         seen.append((scene.structure.width, scene.structure.height))
         return jnp.zeros((2, 2, 3))
 
-    monkeypatch.setattr(sys.modules["rtjax.render"], "render", stub)
+    monkeypatch.setattr(rtjax.batch, "render", stub)
     code, stdout, err = render_main(capsys, deck, "-o", tmp_path / "out", "--allow-large")
     assert code == 0, err
     assert seen == [(16385, height)]
@@ -314,7 +317,7 @@ def test_out_of_memory_is_one_line(tmp_path, capsys, monkeypatch):
     def oom(scene, **kw):
         raise RuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 123456789 bytes.\nmore detail")
 
-    monkeypatch.setattr(sys.modules["rtjax.render"], "render", oom)
+    monkeypatch.setattr(rtjax.batch, "render", oom)
     deck = write_deck(tmp_path, SMALL + "rend a.ras\n")
     code, stdout, err = render_main(capsys, deck, "-o", tmp_path / "out")
     assert code == 2 and stdout == ""
@@ -332,6 +335,6 @@ def test_edges_reaches_the_renderer(tmp_path, capsys, monkeypatch):
         return jnp.zeros((scene.structure.height, scene.structure.width, 3))
 
     deck = write_deck(tmp_path, SMALL + "rend a.ras\n")
-    monkeypatch.setattr(sys.modules["rtjax.render"], "render", with_edges)
+    monkeypatch.setattr(rtjax.batch, "render", with_edges)
     assert render_main(capsys, deck, "-o", tmp_path / "out", "--edges", "1.5", "--spp", "2")[0] == 0
     assert calls == [(1.5, 2)]

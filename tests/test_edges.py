@@ -31,17 +31,17 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import importlib
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import reference
 import rtjax
 from conftest import quick_xla
+from rtjax import reference
 from rtjax.camera import pixel_grid
+from rtjax.render import EDGE_CHUNK_MIN
 
 SPP = 32  # the yardstick: 32 × 32 samples per pixel
 STEP = 0.2  # finite-difference step, in pixels (world size at the sphere's distance)
@@ -168,6 +168,7 @@ def cosine(a, b) -> float:
 # measured mean |image − supersampled| (levels of 255), plain → silhouette-aware:
 # single 0.551 → 0.074 (7.5×), occlusion 0.877 → 0.134 (6.6×), shadow 1.063 → 0.089
 # (12×), mirror 0.261 → 0.037 (7.0×)
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["single", "occlusion", "shadow", "mirror"])
 def test_image_approaches_the_supersampled_one(name):
     k = 1 if name == "mirror" else 0
@@ -181,7 +182,7 @@ def test_image_approaches_the_supersampled_one(name):
 
 
 def test_supersampled_yardstick_is_the_independent_reference():
-    """The yardstick equals tests/reference.py's independent float64 render (32 × 32
+    """The yardstick equals rtjax.reference's independent float64 render (32 × 32
     samples), so its finite differences are those of an independent renderer."""
     frame = reference.parse_deck_text(DECKS["occlusion"][0])[0]
     np.testing.assert_allclose(supersampled("occlusion"), reference.render_reference(frame, depth=0, spp=SPP), atol=1e-4)
@@ -225,6 +226,7 @@ CASES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, k, axis", list(CASES), ids=[f"{n}-sphere{k}-{a}" for n, k, a in CASES])
 def test_derivative_approaches_the_supersampled_finite_difference(name, k, axis):
     max_sum_error = CASES[(name, k, axis)]
@@ -244,6 +246,7 @@ def test_derivative_approaches_the_supersampled_finite_difference(name, k, axis)
             assert error <= 0.05, f"channel {ch}: summed derivative {ad[..., ch].sum():.1f} vs {fd[..., ch].sum():.1f}"
 
 
+@pytest.mark.slow
 def test_plain_derivative_misses_the_edge_terms():
     """Why the mode exists: on the single sphere the plain render's radius derivative
     (pixel centres, no silhouette term) is far from the supersampled one."""
@@ -255,6 +258,7 @@ def test_plain_derivative_misses_the_edge_terms():
     assert cosine(jacobian[AXES["r"]], fd) > 0.99
 
 
+@pytest.mark.slow
 def test_reverse_mode_agrees_with_forward_mode():
     """jax.grad of the mean silhouette-aware image equals the mean of its jacfwd columns
     (the mode's edge terms reach both modes of differentiation alike)."""
@@ -275,6 +279,7 @@ def test_reverse_mode_agrees_with_forward_mode():
 # (c) the width going to 0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["occlusion", "shadow", "mirror"])
 def test_vanishing_width_gives_the_plain_image(name):
     s = scene(name)
@@ -290,6 +295,7 @@ def test_vanishing_width_gives_the_plain_image(name):
 # brief asked 0.95). Summed derivatives are not asserted: Σ 152.3 / 162.8 (x, 6.4 %),
 # 99.0 / 81.1 (y), −239.8 / −193.8 (z), −252.2 / −304.2 (r, 17 %; per channel R 5.4 %,
 # B 1.2 %, G cancels): the reflected outline's curvature within a pixel is large.
+@pytest.mark.slow
 @pytest.mark.parametrize("axis", ["x", "y", "z", "r"])
 def test_silhouette_seen_in_a_mirror(axis):
     _, jacobian = edge_mode("mirror", 1)
@@ -307,6 +313,7 @@ def test_silhouette_seen_in_a_mirror(axis):
 # glass sphere's 0.20): its outline is seen refracted. Measured cosines 0.9936, 0.9938,
 # 0.9949, 0.9929 (x, y, z, r); summed derivatives Σ −977.0 / −997.1 (x, 2.0 %),
 # 273.2 / 261.7 (y, 4.4 %), −1123.1 / −1129.8 (z, 0.6 %); r's sum cancels (|Σ|/Σ|·| = 0.02).
+@pytest.mark.slow
 @pytest.mark.parametrize("axis", ["x", "y", "z", "r"])
 def test_silhouette_seen_through_glass(axis):
     s = scene("glass")
@@ -324,7 +331,7 @@ def test_silhouette_seen_through_glass(axis):
 
 
 # --------------------------------------------------------------------------------------
-# (f) the blend's parts (`render_samples(parts=True)`), what fitting at pixel centres uses
+# (f) the blend's parts (`edge_samples`), what fitting at pixel centres uses
 
 
 def _pixel_centres(s: rtjax.Scene):
@@ -336,7 +343,7 @@ def _pixel_centres(s: rtjax.Scene):
 def test_parts_centre_is_the_plain_colour_and_sides_straddle_it(name):
     s = scene(name)
     depth = DECKS[name][1]
-    e = rtjax.render_samples(s, _pixel_centres(s), depth=depth, edges=WIDTH, parts=True)
+    e = rtjax.edge_samples(s, _pixel_centres(s), depth=depth, edges=WIDTH)
     flat = plain(name).reshape(-1, 3)
     # values at pixel centres, shadow edges included (sharp)
     np.testing.assert_allclose(np.asarray(e.centre), flat, rtol=0, atol=1e-9)
@@ -362,11 +369,11 @@ def test_parts_flip_the_nearest_shadow_edge():
     that edge within reach, and its distance to it is what the move needed."""
     s = scene("shadow")
     xy = _pixel_centres(s)
-    e = rtjax.render_samples(s, xy, edges=WIDTH, parts=True)
+    e = rtjax.edge_samples(s, xy, edges=WIDTH)
     centre, flipped, sx = np.asarray(e.centre), np.asarray(e.flipped), np.asarray(e.shadow_x)
     # every floor pixel's centre: its sphere, from the plain hit test
     o, d = rtjax.camera.rays_through(s.params.eye, s.params.refp, s.params.vang, 32, 32, jnp.asarray(xy.T))
-    on_floor = np.asarray(rtjax.spheres.nearest(o, d, s.params.centers, s.params.radii, jnp.full(1024, -1), 1e-6)[1]) == 1
+    on_floor = np.asarray(rtjax.spheres.nearest(o, d, s.params.centers, s.params.radii, jnp.full(1024, -1), 1e-6, False)[1]) == 1
     floor = on_floor & (np.asarray(e.x) == 0)
     near = floor & (sx < 1)
     lit = near & (centre.sum(1) > flipped.sum(1) + 30)
@@ -393,7 +400,7 @@ def test_parts_flip_the_nearest_shadow_edge():
 def test_parts_need_the_silhouette_mode():
     s = scene("single")
     with pytest.raises(rtjax.RtjaxError, match="edges"):
-        rtjax.render_samples(s, _pixel_centres(s), parts=True)
+        rtjax.edge_samples(s, _pixel_centres(s), edges=0)
 
 
 # --------------------------------------------------------------------------------------
@@ -405,12 +412,11 @@ def test_parts_need_the_silhouette_mode():
 # mode (as in the sections above). These scenes at 96 × 96 pixels are above.
 
 BIG = 96
-render_module = importlib.import_module("rtjax.render")  # the package's `render` is the function
 
 
 def big(name: str) -> rtjax.Scene:
     s = scene(name).resized(BIG)
-    assert s.structure.width * s.structure.height > render_module.EDGE_CHUNK_MIN
+    assert s.structure.width * s.structure.height > EDGE_CHUNK_MIN
     return s
 
 
@@ -434,7 +440,7 @@ def test_every_pixel_an_outline_crosses_is_chosen():
     w, h = s.structure.width, s.structure.height
     ring = pixel_grid(w + 2, h + 2, jnp.array([-0.5, -0.5]))
     keys = rtjax.trace.trace(s.structure, s.params, *rtjax.camera.rays_through(
-        s.params.eye, s.params.refp, s.params.vang, w, h, ring), 0, keyed=True)[1]
+        s.params.eye, s.params.refp, s.params.vang, w, h, ring), 0, keyed=True).key
     near = np.asarray(rtjax.edges.edge_pixels(keys.reshape(h + 2, w + 2), 1))
     u = (np.arange(9) + 0.5) / 9
     sub = np.stack(np.meshgrid(u, u, indexing="xy"), -1).reshape(-1, 2)
@@ -450,6 +456,7 @@ def test_every_pixel_an_outline_crosses_is_chosen():
     assert near.sum() < 3 * crossed.sum()  # the outline's neighbours and the terminator (measured 444 for 154)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["occlusion", "shadow", "glass"])  # (single: within occlusion; mirror: glass reflects too)
 def test_whole_image_is_every_pixel_traced_in_the_mode(name):
     """At 96 × 96 the chosen pixels hold every edge: the image equals the mode traced
@@ -462,6 +469,7 @@ def test_whole_image_is_every_pixel_traced_in_the_mode(name):
     assert np.abs(whole - np.asarray(rtjax.render(s, depth=depth)).reshape(-1, 3)).max() > 20  # edges blended
 
 
+@pytest.mark.slow
 def test_whole_image_derivatives_are_every_pixel_traced_in_the_mode():
     """The shadow scene at 96 × 96: the Jacobian of the image with respect to the
     occluder's centre and radius (jacfwd) equals that of the mode traced at every pixel,

@@ -116,6 +116,7 @@ def assert_mirror_finite(scene: rtjax.Scene, edges: float):
     return assert_finite_everywhere(scene, depth=MIRROR_DEPTH, edges=edges)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("edges", [0.0, 1.0])
 def test_tangent_ray(edges):
     # the vertical image centre line of an 8-wide image lies between pixels; put the
@@ -129,6 +130,7 @@ def test_tangent_ray(edges):
     assert_finite_everywhere(scene.replace(radii=np.array([r], np.float32)), edges=edges)
 
 
+@pytest.mark.slow
 def test_total_internal_reflection_onset_and_past_it():
     # The eye inside a glass sphere of n = 1.5, off its centre: a ray from the eye meets
     # the sphere from inside at incidence i, sin i = (distance from the centre to the
@@ -162,6 +164,7 @@ def test_total_internal_reflection_onset_and_past_it():
     assert blue[ratio < 0.999].min() > blue[ratio > 1.001].max() + 5, blue.reshape(6, 8)
 
 
+@pytest.mark.slow
 def test_n_equal_one():
     # an opaque sphere behind it, seen straight through (no bending at n = 1)
     assert_glass_finite(glass("sphe 0 0 0 10\n", "trpa 0.8 1 0.3 5\n"))
@@ -210,6 +213,7 @@ def test_light_exactly_behind_the_eye():
     assert_finite_everywhere(deck("sphe 0 0 0 10\nopaq 1 1 1 0.5 3\nplig 0 -1 0 255 255 255\n"))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("radius, distance", [("1e-3", "5e-3"), ("1e5", "3e5")])
 def test_tiny_and_huge_spheres(radius, distance):
     scene = deck(f"sphe 0 0 0 {radius}\nopaq 1 0.5 0 0.4 10\n" + LIT, f"eyep 0 -{distance} 0\nrefp 0 0 0\nvang 40 30\n")
@@ -217,6 +221,7 @@ def test_tiny_and_huge_spheres(radius, distance):
     assert float(image[3, 4, 0]) > 50  # the sphere is seen, lit, at the centre
 
 
+@pytest.mark.slow
 def test_scene_translated_by_1e4():
     body = "sphe {x} 0 0 10\nopaq 1 0.5 0 0.4 10\nsphe {x2} 0 -5 6\nmirr\nplig 0.3 -1 0.5 200 180 160\nelig 0.2\nback 10 20 30\n"
     cam = "eyep {x} -50 10\nrefp {x} 0 0\nvang 40 30\n"
@@ -243,11 +248,13 @@ def test_eye_inside_a_glass_sphere():
     assert_glass_finite(glass("sphe 0 -50 0 5\n", "trpa 0.8 1.4 0.3 5\n", "sphe 0 0 0 10\nopaq 1 1 0 0 1\n"))
 
 
+@pytest.mark.slow
 def test_two_spheres_touching():
     scene = deck("sphe -5 0 0 5\nopaq 1 0 0 0.3 5\nsphe 5 0 0 5\nmirr\n" + LIT)
     assert_mirror_finite(scene, edges=1.0)
 
 
+@pytest.mark.slow
 def test_sphere_behind_the_eye():
     scene = deck("sphe 0 -80 0 10\nopaq 1 0 0 0.3 5\nsphe 0 0 0 5\nmirr\n" + LIT)
     image = assert_mirror_finite(scene, edges=1.0)

@@ -4,11 +4,9 @@ and a solve that cannot converge (reported, never raised)."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 
-import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import ROOT, scene_from_text, truth_deck
@@ -29,6 +27,7 @@ def moved(scene: rtjax.Scene, **deltas) -> rtjax.Scene:
     return scene.replace(**{k: np.asarray(getattr(scene.params, k)) + v for k, v in deltas.items()})
 
 
+@pytest.mark.slow
 def test_recovers_centres(truth, target):
     """Off by up to 1.5 units (a fifth of a radius) in every direction. Depth (along the
     view, y here) is seen only through perspective, so it is the least determined.
@@ -40,6 +39,7 @@ def test_recovers_centres(truth, target):
     assert res.history and res.history[-1]["best_loss"] < res.history[0]["loss"]
 
 
+@pytest.mark.slow
 def test_recovers_colours_and_ke(truth, target):
     start = truth.replace(diffuse=np.full((2, 3), 0.5), ke=0.5)
     res = fitting.fit(start, target, "colors,ke", max_steps=20)
@@ -48,6 +48,7 @@ def test_recovers_colours_and_ke(truth, target):
     assert res.converged, res.message
 
 
+@pytest.mark.slow
 def test_recovers_radii_and_light_direction(truth, target):
     start = truth.replace(radii=np.array([7.0, 8.0]), light_dirs=np.array([[0.6, -1.0, 0.5]]))
     res = fitting.fit(start, target, "radii,light", max_steps=30)
@@ -58,6 +59,7 @@ def test_recovers_radii_and_light_direction(truth, target):
     assert cos > 1 - 1e-5, fitted
 
 
+@pytest.mark.slow
 def test_bounded_parameters_stay_in_range(truth):
     """A target no valid colour can match (pure white): colours end at the bound, never past it."""
     white = np.full((truth.structure.height, truth.structure.width, 3), 255.0)
@@ -66,6 +68,7 @@ def test_bounded_parameters_stay_in_range(truth):
     assert d.min() >= 0 and d.max() <= 1 and 0 <= float(res.scene.params.ke) <= 1
 
 
+@pytest.mark.slow
 def test_only_chosen_spheres_move(truth, target):
     start = moved(truth, centers=np.array([[1.0, 0, 0.5], [0.5, 0, 0.5]]))
     res = fitting.fit(start, target, "centers", spheres=[1], max_steps=5)
@@ -73,6 +76,7 @@ def test_only_chosen_spheres_move(truth, target):
     assert [r[0] for r in res.table()] == ["sphere 1 centre"]
 
 
+@pytest.mark.slow
 def test_target_of_another_size_with_the_same_aspect(truth):
     big = truth.resized(80)
     target = np.asarray(rtjax.render(big))
@@ -93,6 +97,7 @@ def test_bad_requests(truth, target, bad, match):
         fitting.fit(truth, target, **kwargs)
 
 
+@pytest.mark.slow
 def test_a_solve_that_cannot_converge_reports_so(truth, target):
     """One step from far away: the result says the steps ran out; nothing raises."""
     start = moved(truth, centers=np.array([[3.0, 0, 2.0], [-3.0, 0, -2.0]]))
@@ -101,6 +106,7 @@ def test_a_solve_that_cannot_converge_reports_so(truth, target):
     assert res.steps == 1 and np.all(np.isfinite(np.asarray(res.scene.params.centers)))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("solver", ["gn", "dogleg", "bfgs"])
 def test_other_solvers_reduce_the_loss(truth, target, solver):
     start = truth.replace(ke=0.4, diffuse=np.asarray(truth.params.diffuse) * 0.8)
@@ -111,6 +117,7 @@ def test_other_solvers_reduce_the_loss(truth, target, solver):
     assert abs(float(res.scene.params.ke) - 0.25) < 0.05
 
 
+@pytest.mark.slow
 def test_photo_like_target_with_gain_and_gamma(truth):
     """A target seen through a camera response 255·(1.2·I/255)^0.9 plus noise: the
     nuisance parameters absorb the response and the colours come back."""
@@ -123,6 +130,7 @@ def test_photo_like_target_with_gain_and_gamma(truth):
     assert abs(res.nuisance["gain"] - 1.2) < 0.08 and abs(res.nuisance["gamma"] - 0.9) < 0.05
 
 
+@pytest.mark.slow
 def test_photo_like_target_through_the_camera_model(tmp_path):
     """A JPEG photo (quality 85, Pillow's 4:2:0 chroma) of the truth, 96 pixels wide,
     rendered with 4×4 samples, blurred by σ = 0.8 px and seen through
@@ -151,6 +159,7 @@ def test_targets_from_files_in_both_byte_orders(truth, target, tmp_path):
         np.testing.assert_array_equal(loaded, target)
 
 
+@pytest.mark.slow
 def test_cli_fit_writes_its_outputs(tmp_path, truth, target):
     """`rtjax fit` end to end: progress lines, a table, the fitted deck (a valid deck that
     renders the fitted image), the image, the JSON report and the plot; exit 0 or 1."""
@@ -189,6 +198,7 @@ def test_cli_fit_bad_input_is_one_line(tmp_path, truth):
     assert proc.stderr.strip().endswith("the nuisance parameters chroma and order model a photo's blur: fit blur with them")
 
 
+@pytest.mark.slow
 def test_recovers_the_texels_it_can_see(tmp_path):
     """A texture as a free parameter family: the texels on the side facing the camera
     come back to within 2 levels (the far side is not seen and keeps its start value);

@@ -140,6 +140,7 @@ def _central_differences(name: str, family: str, rel: float) -> np.ndarray:
 CASES = [(name, family) for name in DECKS for family in FAMILIES]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, family", CASES, ids=[f"{n}-{f}" for n, f in CASES])
 def test_derivative_matches_central_differences(name, family):
     s = scene(name)
@@ -181,6 +182,7 @@ def test_derivative_matches_central_differences(name, family):
         assert not f_cols.any() and not r_cols.any(), "an entry that the sphere's kind ignores has a derivative"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("edges", [0.0, 1.0])
 def test_float32_agrees_with_float64_on_the_sample_deck(edges):
     """The sample deck at 96 × 71: ≥ 99.5 % of pixels within half a level (per channel's

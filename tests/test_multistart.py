@@ -68,6 +68,7 @@ def runs(truth):
     return one, four, rows, start
 
 
+@pytest.mark.slow
 def test_starts_are_the_given_one_and_seeded_perturbations(runs):
     one, _, _, start = runs
     assert one.starts == 3 and one.devices == 1 and len(one.losses) == len(one.results) == 3
@@ -81,6 +82,7 @@ def test_starts_are_the_given_one_and_seeded_perturbations(runs):
     assert again.shape == (3, 2, 3) and not np.any(np.asarray(again[0]))
 
 
+@pytest.mark.slow
 def test_best_start_kept_and_converged_counted(runs, truth):
     one, _, rows, _ = runs
     losses = np.asarray(one.losses)
@@ -98,6 +100,7 @@ def test_best_start_kept_and_converged_counted(runs, truth):
     assert one.best.history and one.best.history[-1]["best_loss"] == pytest.approx(one.loss)
 
 
+@pytest.mark.slow
 def test_sharded_starts_agree_with_one_device(runs):
     one, four, _, _ = runs
     assert four["devices"] == 4 and len(four["losses"]) == 4

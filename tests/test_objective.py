@@ -37,6 +37,7 @@ def _levels(scene, target):
     return make_levels(target, weight, [w, w], [1.0, 1.0], jnp.float64, exact=[False, True])
 
 
+@pytest.mark.slow
 def test_exact_level_matches_a_pixel_centre_target_at_the_truth():
     """At the truth the exact level's model is the pixel-centre render (residual 0);
     the box-filtered level differs from it at the outline."""
@@ -54,6 +55,7 @@ def test_exact_level_matches_a_pixel_centre_target_at_the_truth():
     assert np.abs(plain.reshape(-1, 3) - aware).max() > 10
 
 
+@pytest.mark.slow
 def test_exact_level_pulls_a_moved_sphere_back():
     """Moved by a fraction of a pixel, some pixel centres change side; the exact level's
     loss is then positive and its gradient points back to the truth, where the
@@ -97,6 +99,7 @@ rend x.sunimg
 """
 
 
+@pytest.mark.slow
 def test_exact_level_pulls_a_moved_shadow_edge_back():
     """The light turned by a fraction of a pixel's worth: shadow-edge pixels whose
     centres changed side are matched by the colour across the edge, scaled by how far
@@ -110,7 +113,7 @@ def test_exact_level_pulls_a_moved_shadow_edge_back():
     selection = Selection(start, "light", None)
     objective = Objective(selection, None, "l2", 10.0)
     y = {"scene": selection.y0()}
-    e = rtjax.render_samples(start, exact.xy, step=exact.step, edges=exact.width, parts=True)
+    e = rtjax.edge_samples(start, exact.xy, step=exact.step, edges=exact.width)
     centre, flipped, sx, t = (np.asarray(a) for a in (e.centre, e.flipped, e.shadow_x, exact.target))
     model = np.asarray(objective.model(y, exact))
     # (the light's turn also changes the lit floor's shading by a few levels)
@@ -207,6 +210,7 @@ def test_camera_blurs_in_the_responses_order_and_blurs_chroma_further():
     np.testing.assert_allclose(np.asarray(gaussian_blur(jnp.asarray(image), 1.3, radius=4)), smooth(image, 1.3), rtol=0, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_a_fitted_blur_is_the_whole_image_at_full_size_and_wider_edges_below():
     """Full size: the whole image, each pixel box-filtered at edges, through `camera`,
     looked at in the level's pixels, with derivatives in the blur that match finite differences;
@@ -259,6 +263,7 @@ def test_default_schedule_an_eighth_a_quarter_and_full_size():
     assert schedule_widths(400, [50, 100, 900]) == [50, 100, 400]
 
 
+@pytest.mark.slow
 def test_levels_scale_the_robust_loss():
     """Levels coarser than the image use a Cauchy scale COARSE_SCALE times wider, the
     refinement of a level matched at pixel centres one EXACT_SCALE times narrower; a

@@ -1,4 +1,4 @@
-"""Sanity tests of the NumPy reference renderer (tests/reference.py) itself.
+"""Sanity tests of the NumPy reference renderer (rtjax.reference) itself.
 
 Each test checks the reference against a value worked out by hand from DECK.md, so the
 reference can in turn be trusted as a yardstick for the JAX renderer. Images are tiny.
@@ -6,13 +6,11 @@ reference can in turn be trusted as a yardstick for the JAX renderer. Images are
 
 import math
 import os
-import sys
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from reference import (  # noqa: E402
+from rtjax.reference import (
     camera_basis,
     image_size,
     parse_deck_text,
@@ -317,7 +315,7 @@ def test_level2_has_multiple_bounces():
 
 
 def test_level3_has_total_internal_reflection(monkeypatch):
-    import reference
+    from rtjax import reference
 
     (f,) = load("level3_glass.dat")
     f.size = 100

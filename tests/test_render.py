@@ -1,4 +1,4 @@
-"""The renderer against analytic pixels and the independent NumPy reference (tests/reference.py)."""
+"""The renderer against analytic pixels and the independent NumPy reference (rtjax.reference)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from conftest import SCENES, scene_from_text
 
-import reference
 import rtjax
+from rtjax import reference
 
 # An 11×11 image whose centre pixel looks exactly at the origin along +y.
 CAMERA = """
@@ -117,11 +117,12 @@ def test_depth_default_and_model_only_what_is_needed():
 
 def test_compiled_graph_follows_the_structure():
     """No Snell's law without glass, no shadow rays without lights, no chain without mirrors."""
-    from rtjax.render import _render
+    from rtjax.render import render_image, resolve_options
 
-    def jaxpr_text(deck, **kw):
+    def jaxpr_text(deck):
         s = rtjax.parse_deck(deck + CAMERA).frames[0].scene
-        return str(jax.make_jaxpr(lambda p: _render(p, s.structure, rtjax.render.__wrapped__ if False else s.structure.default_depth, 1, 1 << 17))(s.params))
+        options = resolve_options(s, None, 1, None, 0.0, 1 << 17)
+        return str(jax.make_jaxpr(lambda p: render_image(s.structure, p, options))(s.params))
 
     opaque = jaxpr_text("sphe 0 0 0 1\nopaq 1 1 1 0 1\n")
     assert "cond" not in opaque and "sqrt" in opaque
@@ -134,6 +135,7 @@ def test_compiled_graph_follows_the_structure():
     assert lit.count("reduce_prod") > opaque.count("reduce_prod")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["ex2s3.dat", "level1_opaque.dat", "level2_mirrors.dat", "level3_glass.dat"])
 def test_matches_reference_on_scene_decks(name):
     """Quantised pixels within 2 levels of the float64 reference on ≥ 99.5 % of pixels."""

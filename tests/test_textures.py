@@ -21,8 +21,8 @@ import numpy as np
 import pytest
 from conftest import ROOT, SCENES
 
-import reference
 import rtjax
+from rtjax import reference
 from rtjax.images import load_image, save_image, to_uint8
 from rtjax.sunraster import write_sunraster
 from rtjax.textures import bilinear, fast_atan2, sphere_uv, texture_colour, textured_diffuse

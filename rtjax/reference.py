@@ -1,9 +1,18 @@
 """Independent float64 NumPy reference of the deck contract (docs: shared/spec/DECK.md).
 
-This module is used ONLY by the tests, as a yardstick for the JAX renderer. It was
-written from DECK.md alone and deliberately shares no code with ``rtjax``: a
-straightforward, readable ray tracer in float64 NumPy, vectorised over pixels but
-otherwise a literal transcription of the spec.
+A slow, independent yardstick for the JAX renderer: the tests compare rtjax's images
+with it and `rtjax bench` times it. It was written from DECK.md alone and deliberately
+shares no code with the rest of ``rtjax`` (its own deck reader, camera, intersection,
+shading and texture sampling; textures are read with Pillow): a straightforward,
+readable ray tracer in float64 NumPy, vectorised over pixels but otherwise a literal
+transcription of the spec. Keep it so: a shared helper would hide a shared mistake.
+
+Usage::
+
+    from rtjax import reference
+
+    frame = reference.parse_deck_text(open("scene.dat").read(), "folder/of/the/deck")[0]
+    image = reference.render_reference(frame, depth=10, spp=1)  # float64 (H, W, 3)
 
 API
 ---
