@@ -209,6 +209,7 @@ class Samples(NamedTuple):
     exact: bool  # matched at pixel centres (see `Objective.model`)
     scale: jnp.ndarray = 1.0  # () the robust loss's scale, as a factor of the fit's (`EXACT_SCALE`)
     whole: bool = False  # the model renders the whole full-size image, then looks at xy (a photo's `camera` model)
+    plain: bool = False  # the model is the plain render at the samples (no edge filter: `texels.plain_level`)
 
 
 def level_grid(width: int, height: int, w: int) -> tuple[int, np.ndarray, float]:
@@ -347,6 +348,9 @@ class Objective:
         def render(xy, edges=samples.width):
             return rtjax.render_samples(scene, xy, step=samples.step, depth=self.depth, edges=edges)
 
+        if samples.plain:
+            return apply_nuisance(rtjax.render_samples(scene, samples.xy, step=samples.step, depth=self.depth), nuisance,
+                                  logs=True)
         if samples.whole:
             image = camera(rtjax.render(scene, depth=self.depth, edges=1.0), nuisance, logs=True)
             i, j = (jnp.floor(samples.xy[:, a]).astype(jnp.int32) for a in (0, 1))

@@ -51,8 +51,10 @@ class FitOptions:
       used). Kept as a tuple in `objective.NUISANCE`'s order.
     - `rtol`, `atol`: the solver's tolerances.
     - `jac`: 'fwd' (the Jacobian by forward mode, one batched pass per step), 'bwd'
-      (reverse mode, for many free parameters such as texels) or None (default: 'fwd'
-      up to 200 free parameters).
+      (reverse mode, materialised), 'matfree' (no Jacobian: conjugate gradients on
+      J·v and Jᵀ·w, for many free parameters such as texels; `fitting.matrixfree`) or
+      None (default: 'fwd' up to `matrixfree.MATRIX_FREE_ABOVE` free parameters, else
+      'matfree').
     - `assignment_order`: a Sun raster target holds R,G,B in the assignment's order.
     """
 

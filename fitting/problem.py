@@ -13,8 +13,10 @@ import rtjax
 
 from .objective import (DENOISE, EXACT_SCALE, Objective, Samples, load_target, make_levels, match_size, nuisance_y0,
                         prepare_mask, schedule_widths)
+from .matrixfree import MATRIX_FREE_ABOVE
 from .options import FitOptions
 from .select import Selection
+from .texels import appearance_only, texel_levels
 
 
 @dataclasses.dataclass(frozen=True)
@@ -24,7 +26,7 @@ class Problem:
     - `scene`: the start scene at the target's size.
     - `selection`: the free parameters (`Selection`).
     - `y0`: their start in the solver's coordinates: {"scene": ..., "nuisance": ...}.
-    - `jac`: 'fwd' or 'bwd'.
+    - `jac`: 'fwd', 'bwd' or 'matfree' (`solvers.Stepper`).
     - `widths`: each level's width in pixels, coarse to fine.
     - `pyramid`: each level's `Samples`.
     - `objective`: the residual function.
@@ -53,8 +55,13 @@ class Problem:
             y["nuisance"] = nuisance_y0(nuisance, jax.tree_util.tree_leaves(y["scene"])[0].dtype)
         jac = options.jac
         if jac is None:
-            jac = "bwd" if selection.size() > 200 else "fwd"
+            jac = "matfree" if selection.size() > MATRIX_FREE_ABOVE else "fwd"
         blurred = "blur" in nuisance
+        if options.levels is None and not blurred and appearance_only(selection.families):
+            # texels: the full-size image, every pixel, the plain render (`fitting.texels`)
+            levels = texel_levels(target, prepare_mask(options.mask, *target.shape[:2]), dtype)
+            objective = Objective(selection, options.depth, options.loss, options.loss_scale)
+            return cls(full, selection, y, jac, [full.structure.width] * len(levels), levels, objective)
         widths = schedule_widths(full.structure.width, options.levels, blurred=blurred)
         given = options.edges or (1.0,)
         # one value: every level; several: one per level in order, the last repeating

@@ -30,6 +30,8 @@ def table_text(result: FitResult) -> str:
     lines = [f"{'parameter':<{width}}  start → fitted"]
     lines += [f"{name:<{width}}  {_fmt(a)} → {_fmt(b)}" for name, a, b in rows]
     loss = result.loss
+    if result.texels is not None:
+        lines += result.texels.lines()
     lines.append(
         f"solver {result.solver}: {result.result} ({result.message}) after {result.steps} iterations, "
         f"{result.times['total']:.1f} s; final RMS residual {math.sqrt(2 * loss) * 255:.3g} levels"
@@ -56,6 +58,7 @@ def report_dict(result: FitResult, deck: str | None = None, target: str | None =
         "parameters": [{"name": n, "start": a, "fitted": b} for n, a, b in result.table()],
         "nuisance": result.nuisance,
         "history": result.history,
+        "texels": result.texels.summary() if result.texels is not None else None,
     }
 
 

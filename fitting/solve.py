@@ -25,6 +25,7 @@ from .options import FitOptions
 from .problem import Problem
 from .select import Selection
 from .solvers import CODES, Stepper, result_message, result_name
+from .texels import TexelCoverage, coverage
 
 
 @dataclasses.dataclass
@@ -43,6 +44,7 @@ class FitResult:
     nuisance: dict[str, float]
     times: dict[str, float]
     solver: str
+    texels: TexelCoverage | None = None  # with textures free: which texels the views determine
 
     def table(self) -> list[tuple[str, object, object]]:
         """(parameter, start, fitted) rows in deck units."""
@@ -318,4 +320,7 @@ def fit(scene: rtjax.Scene, target, free: str | Sequence[str] = "centers", *, sp
     started = time.perf_counter()
     problem = Problem.build(scene, target, free, spheres, options)
     stepper = Single(Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac))
-    return fit_starts(problem, stepper, problem.y0, [problem.scene], options, callback, started=started).best
+    result = fit_starts(problem, stepper, problem.y0, [problem.scene], options, callback, started=started).best
+    if "textures" in problem.selection.families:
+        result.texels = coverage([problem.scene], options.mask, options.depth)
+    return result

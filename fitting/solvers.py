@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Int
 
+from .matrixfree import LM_STEP0_MATRIX_FREE, matrix_free
 from .objective import Objective
 
 #: Levenberg–Marquardt's first trust-region step size on every level (its damping
@@ -26,11 +27,13 @@ LM_GROW_ABOVE = 0.75
 
 
 class _TrustRegion(optx.ClassicalTrustRegion):
-    """optimistix's classical trust region, starting at `LM_STEP0` on every level."""
+    """optimistix's classical trust region, starting at `step0` (default `LM_STEP0`) on every level."""
+
+    step0: float = LM_STEP0
 
     def init(self, y, f_info_struct):
         state = super().init(y, f_info_struct)
-        return eqx.tree_at(lambda s: s.step_size, state, jnp.asarray(LM_STEP0, state.step_size.dtype))
+        return eqx.tree_at(lambda s: s.step_size, state, jnp.asarray(self.step0, state.step_size.dtype))
 
 
 def _levenberg_marquardt(rtol: float, atol: float) -> optx.LevenbergMarquardt:
@@ -117,7 +120,8 @@ class Stepper:
 
     - `objective`: the residual function r(y, samples).
     - `solver`: a key of `SOLVERS`; `rtol`, `atol` its tolerances.
-    - `jac`: 'fwd' (the Jacobian by `with_dense_jacobian`) or 'bwd' (reverse mode).
+    - `jac`: 'fwd' (the Jacobian by `with_dense_jacobian`), 'bwd' (reverse mode) or
+      'matfree' (no Jacobian: `matrixfree.matrix_free`).
 
     `initial` and `advance` are traceable; `init` and `step` are their `eqx.filter_jit`
     forms, compiled once per fit (a level's samples are arguments).
@@ -127,6 +131,10 @@ class Stepper:
         residuals = with_dense_jacobian(objective.residuals) if jac == "fwd" else objective.residuals
         self.options = {"jac": "bwd"} if jac == "bwd" and solver != "bfgs" else {}
         self.solver = SOLVERS[solver](rtol, atol)
+        if jac == "matfree" and solver != "bfgs":
+            self.solver = matrix_free(self.solver)
+            if solver == "lm":
+                self.solver = eqx.tree_at(lambda s: s.search.step0, self.solver, LM_STEP0_MATRIX_FREE)
         if solver == "bfgs":
             def fn(y, args):
                 r = residuals(y, args)
