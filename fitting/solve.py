@@ -20,6 +20,7 @@ import numpy as np
 
 import rtjax
 
+from .frames import build_frames
 from .objective import NARROW_BELOW, nuisance_values
 from .options import FitOptions
 from .problem import Problem
@@ -296,7 +297,7 @@ def fit_starts(problem: Problem, stepper: Steps, ys, begun: Sequence[rtjax.Scene
                             fitted=fitted, devices=stepper.devices, times={"total": total})
 
 
-def fit(scene: rtjax.Scene, target, free: str | Sequence[str] = "centers", *, spheres: Sequence[int] | None = None,
+def fit(scene: rtjax.Scene | Sequence[rtjax.Scene], target, free: str | Sequence[str] = "centers", *, spheres: Sequence[int] | None = None,
         options: FitOptions | None = None, callback: Callable[[dict], None] | None = None, **settings) -> FitResult:
     """Fit the free parameters of `scene` so that its render matches `target`.
 
@@ -306,6 +307,10 @@ def fit(scene: rtjax.Scene, target, free: str | Sequence[str] = "centers", *, sp
     - `target`: an (H, W, 3) array in 0..255 or an image path (Sun raster in either byte
       order, PNG, JPEG, EXR, TIFF, …). A different size is followed when its aspect
       ratio matches the scene's view, else `FitError`.
+      Several views: `scene` a list of scenes (a deck's frames) and `target` a list of
+      one target each; the free parameters are shared, the residuals of all frames
+      fitted together (`fitting.frames`); the result's scene is the first frame's
+      (`frames.fitted_scenes` gives every frame's).
     - `free`: parameter families ('centers', 'radii', 'colors', 'ks', 'beta', 'kt', 'n',
       'ke', 'light', 'light_colors', 'background', 'eye', 'refp', 'vang', 'textures'),
       as a list or comma-separated.
@@ -318,9 +323,14 @@ def fit(scene: rtjax.Scene, target, free: str | Sequence[str] = "centers", *, sp
     """
     options = dataclasses.replace(options or FitOptions(), **settings)
     started = time.perf_counter()
-    problem = Problem.build(scene, target, free, spheres, options)
+    if isinstance(scene, rtjax.Scene):
+        problem = Problem.build(scene, target, free, spheres, options)
+        views = [problem.scene]
+    else:  # one scene and one target per frame, the free parameters shared (`fitting.frames`)
+        problem = build_frames(scene, target, free, spheres, options)
+        views = problem.objective.scenes
     stepper = Single(Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac))
     result = fit_starts(problem, stepper, problem.y0, [problem.scene], options, callback, started=started).best
     if "textures" in problem.selection.families:
-        result.texels = coverage([problem.scene], options.mask, options.depth)
+        result.texels = coverage(views, options.mask, options.depth)
     return result
