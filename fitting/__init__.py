@@ -4,6 +4,7 @@ Depends only on rtjax's public API.
 """
 
 from .errors import FitError as FitError
+from .frames import fitted_scenes as fitted_scenes
 from .objective import (NUISANCE as NUISANCE, apply_nuisance as apply_nuisance, camera as camera, downsample as downsample,
                         gaussian_blur as gaussian_blur, load_target as load_target, smooth as smooth)
 from .options import FitOptions as FitOptions

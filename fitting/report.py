@@ -97,8 +97,10 @@ def plot_convergence(result: FitResult, path: str) -> None:
 
 
 def save_outputs(result: FitResult, outdir: str, stem: str, deck_path: str | None = None, target_path: str | None = None,
-                 image_name: str | None = None) -> dict[str, str]:
-    """Fitted deck, fitted image (Sun raster), JSON report and convergence plot in outdir."""
+                 image_name: str | None = None, frames=None) -> dict[str, str]:
+    """Fitted deck, fitted image (Sun raster), JSON report and convergence plot in outdir.
+    `frames`: a multi-frame fit's fitted scenes (`frames.fitted_scenes`), the deck's
+    frames in order (`rend` {stem}_frameK.sunimg after the first); the image is the first's."""
     os.makedirs(outdir, exist_ok=True)
     image_name = image_name or f"{stem}.sunimg"
     paths = {
@@ -110,16 +112,20 @@ def save_outputs(result: FitResult, outdir: str, stem: str, deck_path: str | Non
     header = f"fitted by rtjax fit ({result.solver}, {result.result}, {result.steps} iterations)"
     if deck_path:
         header += f"\nfrom {os.path.basename(deck_path)}" + (f" to {os.path.basename(target_path)}" if target_path else "")
-    scene = result.scene
+    scenes = list(frames) if frames else [result.scene]
     if "textures" in result.selection.families:
         # fitted texels are new images: write them beside the deck and point `tmap` at them
         names = []
-        for k, texels in enumerate(scene.params.textures):
+        for k, texels in enumerate(result.scene.params.textures):
             names.append(f"{stem}_texture{k}.sunimg")
             rtjax.save_image(os.path.join(outdir, names[-1]), np.asarray(texels))
             paths[f"texture{k}"] = os.path.join(outdir, names[-1])
-        scene = rtjax.Scene(scene.structure.replace(texture_files=tuple(names)), scene.params)
-    rtjax.save_deck(paths["deck"], scene, image_name, header=header)
+        scenes = [rtjax.Scene(s.structure.replace(texture_files=tuple(names)), s.params) for s in scenes]
+    if frames:
+        outputs = [image_name] + [f"{stem}_frame{k}.sunimg" for k in range(1, len(scenes))]
+        rtjax.save_deck(paths["deck"], [rtjax.Frame(s, o, 0) for s, o in zip(scenes, outputs)], header=header)
+    else:
+        rtjax.save_deck(paths["deck"], scenes[0], image_name, header=header)
     image = rtjax.render(result.scene)
     rtjax.save_image(paths["image"], np.asarray(image))
     write_json(paths["report"], report_dict(result, deck_path, target_path))

@@ -233,9 +233,16 @@ def cmd_fit(args) -> int:
     deck = load_deck(args.deck)
     if not deck.frames:
         raise DeckError(deck.path, None, "the deck has no rend line: nothing to fit")
-    if not 0 <= args.frame < len(deck.frames):
-        raise RtjaxError(f"--frame {args.frame}: the deck has {len(deck.frames)} frames (0..{len(deck.frames) - 1})")
-    frame = deck.frames[args.frame]
+    targets = args.target
+    chosen = args.frames if args.frames is not None else [args.frame] if len(targets) == 1 else list(range(len(targets)))
+    if len(chosen) != len(targets):
+        raise RtjaxError(f"{len(targets)} targets for {len(chosen)} frames (--frames): give one target per frame")
+    for k in chosen:
+        if not 0 <= k < len(deck.frames):
+            flag = "--frame " if args.frames is None and len(targets) == 1 else "frame "
+            raise RtjaxError(f"{flag}{k}: the deck has {len(deck.frames)} frames (0..{len(deck.frames) - 1})")
+    several_frames = len(chosen) > 1
+    frame = deck.frames[chosen[0]]
     out = args.output or os.path.splitext(os.path.basename(args.deck))[0] + "_fitted.dat"
     outdir, stem = os.path.dirname(out) or ".", os.path.splitext(os.path.basename(out))[0]
     import jax
@@ -255,21 +262,25 @@ def cmd_fit(args) -> int:
     )
     progress = _Progress(args.max_steps, args.quiet or jax.process_index() != 0, args.interrupts)
     several = args.starts > 1 or args.devices != 1
+    if several and several_frames:
+        raise RtjaxError("--starts and --devices fit one frame: give one target")
+    scenes = [deck.frames[k].scene for k in chosen]
     try:
         with args.interrupts.deferring():
             if several:
-                multi = fitting.fit_multistart(frame.scene, args.target, args.free, starts=args.starts, seed=args.seed,
+                multi = fitting.fit_multistart(frame.scene, targets[0], args.free, starts=args.starts, seed=args.seed,
                                                spread=args.spread, devices=args.devices, spheres=args.spheres,
                                                options=options, callback=progress)
                 result = multi.best
             else:
-                result = fitting.fit(frame.scene, args.target, args.free, spheres=args.spheres, options=options,
-                                     callback=progress)
+                result = fitting.fit(scenes if several_frames else frame.scene, targets if several_frames else targets[0],
+                                     args.free, spheres=args.spheres, options=options, callback=progress)
     finally:
         progress.close()
     if jax.process_index() != 0:  # several hosts: the first one writes and reports
         return 0 if result.converged else 1
-    paths = save_outputs(result, outdir, stem, args.deck, args.target, image_name=f"{stem}.sunimg")
+    fitted = fitting.fitted_scenes(scenes, result.selection, result.y) if several_frames else None
+    paths = save_outputs(result, outdir, stem, args.deck, ", ".join(targets), image_name=f"{stem}.sunimg", frames=fitted)
     if several:
         add_to_report(paths["report"], multi)
     print(table_text(result))
@@ -339,7 +350,8 @@ def build_parser() -> argparse.ArgumentParser:
     f = sub.add_parser("fit", help="fit a deck's parameters to a target image",
                        description="Fit the free parameters of DECK's scene so that it renders like TARGET.")
     f.add_argument("deck", help="the deck whose scene is the starting point")
-    f.add_argument("target", help="the target image: Sun raster (either byte order) or anything OpenImageIO reads")
+    f.add_argument("target", nargs="+", help="the target image: Sun raster (either byte order) or anything OpenImageIO "
+                   "reads; several: one per frame (--frames; default: the deck's frames in order), fitted together")
     f.add_argument("--free", default="centers", help="parameter families to fit, e.g. centers,colors,ke (default centers)")
     f.add_argument("--spheres", type=_int_list, default=None, help="restrict per-sphere families to these spheres, e.g. 0,2,5")
     f.add_argument("--solver", choices=("lm", "gn", "dogleg", "bfgs"), default="lm", help="solver (default lm: Levenberg-Marquardt)")
@@ -357,6 +369,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--nuisance", default="", help="also fit a camera model for a photo-like target: gain,gamma,blur,chroma,order, or camera (all five: response, Gaussian blur in pixels, JPEG chroma blur, blur before/after the response)")
     f.add_argument("--mask", default=None, help="an image whose dark pixels are ignored")
     f.add_argument("--frame", type=int, default=0, help="which rend frame of the deck to fit (default 0)")
+    f.add_argument("--frames", type=_int_list, default=None,
+                   help="the rend frames the targets show, e.g. 0,2,3 (default: one target, --frame; several, 0,1,...)")
     f.add_argument("--assignment-order", action="store_true", help="the target is a Sun raster file in the assignment's R,G,B order")
     f.add_argument("--quiet", action="store_true", help="no per-iteration progress")
     f.add_argument("--starts", type=_positive_int, default=1, metavar="K",
