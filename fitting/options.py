@@ -56,6 +56,8 @@ class FitOptions:
       None (default: 'fwd' up to `matrixfree.MATRIX_FREE_ABOVE` free parameters, else
       'matfree').
     - `assignment_order`: a Sun raster target holds R,G,B in the assignment's order.
+    - `smooth`: with textures free, the weight of a smoothness prior on the texels
+      (`texels.Smoothed`; 0, default: none).
     """
 
     solver: str = "lm"
@@ -73,12 +75,15 @@ class FitOptions:
     atol: float = 1e-7
     jac: str | None = None
     assignment_order: bool = False
+    smooth: float = 0.0
 
     def __post_init__(self):
         if self.solver not in SOLVERS:
             raise FitError(f"unknown solver {self.solver!r}; choose from {', '.join(SOLVERS)}")
         if self.loss not in LOSSES:
             raise FitError(f"unknown loss {self.loss!r}; choose from {', '.join(LOSSES)}")
+        if not self.smooth >= 0:
+            raise FitError(f"smooth must be ≥ 0, not {self.smooth}")
         if int(self.max_steps) < 1:
             raise FitError(f"max_steps must be ≥ 1, not {self.max_steps}")
         object.__setattr__(self, "nuisance", nuisance_names(self.nuisance or ()))

@@ -20,13 +20,14 @@ import numpy as np
 
 import rtjax
 
+from .errors import FitError
 from .frames import build_frames
 from .objective import NARROW_BELOW, nuisance_values
 from .options import FitOptions
 from .problem import Problem
 from .select import Selection
 from .solvers import CODES, Stepper, result_message, result_name
-from .texels import TexelCoverage, coverage
+from .texels import Smoothed, TexelCoverage, coverage
 
 
 @dataclasses.dataclass
@@ -329,6 +330,10 @@ def fit(scene: rtjax.Scene | Sequence[rtjax.Scene], target, free: str | Sequence
     else:  # one scene and one target per frame, the free parameters shared (`fitting.frames`)
         problem = build_frames(scene, target, free, spheres, options)
         views = problem.objective.scenes
+    if options.smooth:
+        if "textures" not in problem.selection.families:
+            raise FitError("smooth is a prior on texels: fit textures with it")
+        problem = dataclasses.replace(problem, objective=Smoothed(problem.objective, problem.selection, options.smooth))
     stepper = Single(Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac))
     result = fit_starts(problem, stepper, problem.y0, [problem.scene], options, callback, started=started).best
     if "textures" in problem.selection.families:

@@ -39,8 +39,8 @@ APPEARANCE = ("textures", "colors", "ks", "beta", "ke", "light_colors", "backgro
 #: a Cauchy loss of the fit's scale would take them in slowly.
 WIDE_SCALE = 10.0
 #: A texel counts as seen at or above this coverage (pixels' worth of weight; see the
-#: module's docstring).
-SEEN_ABOVE = 0.5
+#: module's docstring): as much as one fully lit pixel that samples it alone.
+SEEN_ABOVE = 1.0
 
 
 def appearance_only(families: Sequence[str]) -> bool:
@@ -127,3 +127,35 @@ def coverage(scenes: Sequence[rtjax.Scene], mask=None, depth: int | None = None)
         w = texel_weights(scene, level, depth)
         total = w if total is None else tuple(a + b for a, b in zip(total, w))
     return TexelCoverage(total, tuple(scenes[0].structure.texture_files))
+
+
+def texel_differences(textures: Sequence) -> jnp.ndarray:
+    """Every pair of neighbouring texels' difference, (M, 3) in levels: along rows
+    (columns wrap, as the sphere's longitude does) and down columns."""
+    out = []
+    for t in textures:
+        out.append((jnp.roll(t, -1, axis=1) - t).reshape(-1, 3))
+        out.append((t[1:] - t[:-1]).reshape(-1, 3))
+    return jnp.concatenate(out)
+
+
+@dataclasses.dataclass
+class Smoothed:
+    """A residual function with a smoothness prior on the texels (Tikhonov on their
+    differences) appended: √`weight`·(neighbour − texel)/255 for every pair of
+    neighbouring texels, so a difference of d levels costs as much as `weight` pixels
+    off by d. It decides the texels the views do not determine by themselves (weakly
+    seen: shared pixels, grazing views) from their neighbours, and fills texels no view
+    sees from theirs (they no longer stay as they started); it also softens sharp
+    steps in the texture, so it is off unless asked for (`FitOptions.smooth`)."""
+
+    objective: object
+    selection: object
+    weight: float
+
+    def residuals(self, y: dict, samples):
+        r = self.objective.residuals(y, samples)
+        textures = self.selection.params(y["scene"]).textures
+        prior = jnp.sqrt(jnp.asarray(self.weight, r.dtype)) * texel_differences(textures).astype(r.dtype) / 255
+        return jnp.concatenate([r, prior])
+
