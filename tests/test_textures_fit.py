@@ -153,3 +153,19 @@ def test_cli_fits_textures_from_two_frames(ball, tmp_path):
     np.testing.assert_array_equal(np.asarray(fitted.frames[1].scene.params.textures[0]), texture)
     report = json.loads((tmp_path / "out" / "fitted.json").read_text())
     assert report["texels"][0]["texels"] == 128 and report["texels"][0]["seen"] > 40
+
+
+def test_smoothness_prior_terms(ball):
+    """One difference per pair of neighbours: along rows, columns wrapping, and down columns."""
+    from fitting.texels import texel_differences
+
+    t = np.arange(2 * 3 * 3, dtype=np.float32).reshape(2, 3, 3)
+    d = np.asarray(texel_differences([t]))
+    assert d.shape == (2 * 3 + 1 * 3, 3)
+    np.testing.assert_array_equal(d[:6], (np.roll(t, -1, axis=1) - t).reshape(-1, 3))
+    np.testing.assert_array_equal(d[6:], np.full((3, 3), 9.0))
+    _, truths, _ = ball
+    with pytest.raises(fitting.FitError, match="smooth is a prior on texels"):
+        fitting.fit(truths[0], rendered(truths[0]), "ke", smooth=1.0)
+    with pytest.raises(fitting.FitError, match="smooth must be ≥ 0"):
+        fitting.FitOptions(smooth=-1.0)
