@@ -24,7 +24,9 @@ class FitOptions:
     - `max_steps`: iterations in all, across the coarse-to-fine levels.
     - `levels`: the pyramid's widths (`objective.schedule_widths`): None (default: an
       eighth, a quarter and the full width), an int (that many levels halving the width,
-      none below 48 pixels; 1: full size only) or a list of widths. Every level but a
+      none below 48 pixels; 1: full size only) or a list of widths. None with textures
+      free (and only `texels.APPEARANCE` families): the full-size image, every pixel,
+      plain renders (`texels.texel_levels`). Every level but a
       full-size one matched at pixel centres renders as many samples as the coarsest has
       pixels, so one compiled step serves them.
     - `edges`: edge width of the silhouette-aware render in pixels of each level (None:
@@ -51,8 +53,8 @@ class FitOptions:
       used). Kept as a tuple in `objective.NUISANCE`'s order.
     - `rtol`, `atol`: the solver's tolerances.
     - `jac`: 'fwd' (the Jacobian by forward mode, one batched pass per step), 'bwd'
-      (reverse mode, materialised), 'matfree' (no Jacobian: conjugate gradients on
-      J·v and Jᵀ·w, for many free parameters such as texels; `fitting.matrixfree`) or
+      (reverse mode, materialised), 'matfree' (no Jacobian: LSMR on J·v and Jᵀ·w,
+      for many free parameters such as texels; `fitting.matrixfree`) or
       None (default: 'fwd' up to `matrixfree.MATRIX_FREE_ABOVE` free parameters, else
       'matfree').
     - `assignment_order`: a Sun raster target holds R,G,B in the assignment's order.
@@ -82,6 +84,8 @@ class FitOptions:
             raise FitError(f"unknown solver {self.solver!r}; choose from {', '.join(SOLVERS)}")
         if self.loss not in LOSSES:
             raise FitError(f"unknown loss {self.loss!r}; choose from {', '.join(LOSSES)}")
+        if self.jac not in (None, "fwd", "bwd", "matfree"):
+            raise FitError(f"unknown jac {self.jac!r}; choose from fwd, bwd, matfree")
         if not self.smooth >= 0:
             raise FitError(f"smooth must be ≥ 0, not {self.smooth}")
         if int(self.max_steps) < 1:
