@@ -337,5 +337,5 @@ def fit(scene: rtjax.Scene | Sequence[rtjax.Scene], target, free: str | Sequence
     stepper = Single(Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac))
     result = fit_starts(problem, stepper, problem.y0, [problem.scene], options, callback, started=started).best
     if "textures" in problem.selection.families:
-        result.texels = coverage(views, options.mask, options.depth)
+        result.texels = coverage(views, options.mask, options.depth, smoothed=bool(options.smooth))
     return result

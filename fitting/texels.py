@@ -86,10 +86,12 @@ class TexelCoverage:
 
     - `weights`: per texture, (h, w) coverage summed over the views.
     - `files`: per texture, its `tmap` file name as the deck gave it.
+    - `smoothed`: whether the fit had a smoothness prior, which fills the texels not seen.
     """
 
     weights: tuple[np.ndarray, ...]
     files: tuple[str, ...] = ()
+    smoothed: bool = False  # a smoothness prior (`Smoothed`) filled the texels not seen
 
     def seen(self, k: int) -> np.ndarray:
         """Texture k's seen texels, (h, w) booleans."""
@@ -98,7 +100,7 @@ class TexelCoverage:
     def summary(self) -> list[dict]:
         """Per texture: its size, and the count and share of texels seen, weakly seen
         (0 < coverage < `SEEN_ABOVE`: moved, not determined alone) and not seen
-        (coverage 0: left as they started)."""
+        (coverage 0: left as they started, unless `smoothed`)."""
         out = []
         for k, w in enumerate(self.weights):
             n = int(w.size)
@@ -106,17 +108,18 @@ class TexelCoverage:
             out.append({"texture": k, "file": self.files[k] if k < len(self.files) else None,
                         "width": int(w.shape[1]), "height": int(w.shape[0]), "texels": n,
                         "seen": seen, "seen_share": seen / n, "weak": n - seen - unseen, "not_seen": unseen,
-                        "not_seen_share": unseen / n, "seen_above": SEEN_ABOVE})
+                        "not_seen_share": unseen / n, "seen_above": SEEN_ABOVE, "smoothed": self.smoothed})
         return out
 
     def lines(self) -> list[str]:
         """The summary as text, one line per texture."""
+        fate = "filled from their neighbours" if self.smoothed else "left as they started"
         return [f"texture {s['texture']} ({s['width']}×{s['height']}): {s['seen']} of {s['texels']} texels seen "
                 f"({100 * s['seen_share']:.1f} %), {s['weak']} weakly, {s['not_seen']} not seen "
-                f"({100 * s['not_seen_share']:.1f} %, left as they started)" for s in self.summary()]
+                f"({100 * s['not_seen_share']:.1f} %, {fate})" for s in self.summary()]
 
 
-def coverage(scenes: Sequence[rtjax.Scene], mask=None, depth: int | None = None) -> TexelCoverage:
+def coverage(scenes: Sequence[rtjax.Scene], mask=None, depth: int | None = None, smoothed: bool = False) -> TexelCoverage:
     """`TexelCoverage` of the views `scenes` (each at its full size, every pixel at its
     centre; `mask`: as `FitOptions.mask`, for each view)."""
     total = None
@@ -126,7 +129,7 @@ def coverage(scenes: Sequence[rtjax.Scene], mask=None, depth: int | None = None)
         level = plain_level(np.zeros((s.height, s.width, 3)), prepare_mask(mask, s.height, s.width), dtype)
         w = texel_weights(scene, level, depth)
         total = w if total is None else tuple(a + b for a, b in zip(total, w))
-    return TexelCoverage(total, tuple(scenes[0].structure.texture_files))
+    return TexelCoverage(total, tuple(scenes[0].structure.texture_files), smoothed)
 
 
 def texel_differences(textures: Sequence) -> jnp.ndarray:

@@ -259,11 +259,12 @@ def cmd_fit(args) -> int:
         nuisance=args.nuisance.split(",") if args.nuisance else (),
         mask=args.mask,
         assignment_order=args.assignment_order,
+        smooth=args.smooth,
     )
     progress = _Progress(args.max_steps, args.quiet or jax.process_index() != 0, args.interrupts)
     several = args.starts > 1 or args.devices != 1
-    if several and several_frames:
-        raise RtjaxError("--starts and --devices fit one frame: give one target")
+    if several and (several_frames or args.smooth):
+        raise RtjaxError("--starts and --devices fit one frame without --smooth: give one target")
     scenes = [deck.frames[k].scene for k in chosen]
     try:
         with args.interrupts.deferring():
@@ -369,6 +370,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--nuisance", default="", help="also fit a camera model for a photo-like target: gain,gamma,blur,chroma,order, or camera (all five: response, Gaussian blur in pixels, JPEG chroma blur, blur before/after the response)")
     f.add_argument("--mask", default=None, help="an image whose dark pixels are ignored")
     f.add_argument("--frame", type=int, default=0, help="which rend frame of the deck to fit (default 0)")
+    f.add_argument("--smooth", type=float, default=0.0, metavar="WEIGHT",
+                   help="with --free textures: a smoothness prior on the texels, each neighbour pair's difference "
+                        "weighing as WEIGHT pixels' (default 0: none; fills texels no view sees)")
     f.add_argument("--frames", type=_int_list, default=None,
                    help="the rend frames the targets show, e.g. 0,2,3 (default: one target, --frame; several, 0,1,...)")
     f.add_argument("--assignment-order", action="store_true", help="the target is a Sun raster file in the assignment's R,G,B order")
