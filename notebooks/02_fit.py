@@ -319,8 +319,8 @@ show([difference(model[k], photo, gain=3) for k in labels], [f"|model − photo|
 # full-size level of plain renders (`fitting.texels`). The deck
 # `scenes/fit/texture_ball.dat` shows a checker ball from four sides; its texture
 # starts flat grey, and the targets are its four frames rendered exactly. A texel is
-# *seen* when its summed weight in the views' pixels is at least half a pixel's
-# worth; texels no view sees (the poles here) keep their start value.
+# *seen* when its summed weight in the views' pixels is at least one fully lit
+# pixel's worth; texels no view sees (the poles here) keep their start value.
 
 # %%
 ball = rtjax.load_deck(SCENES / "fit" / "texture_ball.dat")
@@ -351,7 +351,7 @@ show(errors + [255 * (1 - tex_all.texels.seen(0))], ["|texel error| ×4, frame 0
 # %% [markdown]
 # One view determines about a quarter of the texture (the half facing the camera,
 # less the rim, where texels are seen at a grazing angle and share pixels); the four
-# frames see about three quarters, all but the rows near the poles, which no frame
+# frames see about seven tenths, all but the rows near the poles, which no frame
 # shows (black in the last map, and grey in the recovered texture: left as they
 # started, not invented). Over the texels that are seen, the error is below a level
 # but at the checker's sharp steps, where a texel next to a weakly seen one is off by
