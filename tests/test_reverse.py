@@ -79,6 +79,29 @@ def test_reverse_equals_forward_through_mirror_and_glass(edges):
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("edges", [0.0, 1.0])
+def test_reverse_equals_forward_on_the_sample_deck(edges):
+    """The same dot-product test on the sample deck at 96 px, its own depth (10): two
+    mirrors and three glass spheres, and in the silhouette mode the whole-image path
+    (edge pixels chosen by key, traced in chunks)."""
+    with open(os.path.join(SCENES, "ex2s3.dat")) as f:
+        s = rtjax.parse_deck(f.read()).frames[0].scene.resized(96).astype(jnp.float64)
+    p = s.params
+
+    def image(p):
+        return rtjax.render(rtjax.Scene(s.structure, p), edges=edges)
+
+    c = jax.random.normal(jax.random.key(7), (s.structure.height, s.structure.width, 3), jnp.float64)
+    pullback = jax.jit(lambda p: jax.vjp(image, p)[1](c)[0])(p)
+    push = jax.jit(lambda p, t: jax.jvp(image, (p,), (t,))[1])
+    for key in range(2):
+        t = _random_like(p, key)
+        forward = float(jnp.vdot(c, push(p, t)))
+        assert abs(forward) > 1
+        assert _inner(pullback, t) == pytest.approx(forward, rel=1e-9), key
+
+
+@pytest.mark.slow
 def test_reverse_equals_finite_differences_through_mirror_and_glass():
     """The plain mode's gradient along random directions against central differences
     (float64; the quotient first checked stable between h and h/10, as in test_grad)."""
