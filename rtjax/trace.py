@@ -247,6 +247,12 @@ def _chain(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: M
     first segment only; `watch` (the silhouette mode's `edges.EdgeWatch`) is folded over
     the segments. Returns the rays after the last segment and the fold (None without).
 
+    In plain mode the body is checkpointed: reverse mode keeps only the state entering
+    each segment and recomputes the segment's intermediates from it, so the gradient's
+    memory hardly grows with the depth (forward mode and the image are unaffected). Not
+    in box and sided modes, whose reverse mode through a checkpointed body disagrees
+    with their forward mode on the sample deck (tests/test_reverse.py).
+
     Wavefront compaction: most rays end after a segment or two, but a scan over all of
     them pays for every ray at every segment. So the chain runs in `tiers`: a tier's
     segments run while more rays are alive than the next tier holds; then the live ones
@@ -271,7 +277,10 @@ def _chain(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: M
 
     def tier(state, i):
         nxt = sizes[i + 1] if i + 1 < len(sizes) else 0
-        state, _ = jax.lax.scan(functools.partial(body, nxt=nxt), state, length=depth + 1)
+        step = functools.partial(body, nxt=nxt)
+        if mode == PLAIN:
+            step = jax.checkpoint(step, prevent_cse=False)
+        state, _ = jax.lax.scan(step, state, length=depth + 1)
         if not nxt:
             return state
         # at most `nxt` rays are alive now (or none: every ray ended within the depth)

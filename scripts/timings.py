@@ -3,9 +3,11 @@ in one run on the sample deck (400×294, float32, depth 10):
 
 compile time and median forward time, plain and silhouette-aware; reverse gradient
 (jax.grad of the mean image w.r.t. all parameters) and jacfwd w.r.t. the 24 centre
-coordinates, each as a ratio to the plain forward time of the same run.
+coordinates, each as a ratio to the plain forward time of the same run and to the
+forward time of its own mode; and the reverse gradient's peak temporary memory at each
+of `--depths` (XLA's compiled memory analysis), per mode.
 
-  python scripts/timings.py [--runs 5] [--deck scenes/ex2s3.dat]
+  python scripts/timings.py [--runs 5] [--deck scenes/ex2s3.dat] [--depths 0 2 10]
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--deck", default="scenes/ex2s3.dat")
     ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--depths", type=int, nargs="*", default=[0, 2, 10], help="depths for the gradient's memory (none: skip)")
     args = ap.parse_args()
     scene = rtjax.load_deck(args.deck).frames[0].scene
     s = scene.structure
@@ -58,12 +61,23 @@ def main() -> None:
         c_g, t_g = timed(grad, scene.params, runs=args.runs)
         c_j, t_j = timed(jac, scene.params.centers, runs=max(1, args.runs // 2))
         mode = "silhouette-aware (edges=1)" if edges else "plain"
-        rows.append((mode, c_f, t_f, c_g, t_g, c_j, t_j))
+        memory = []
+        for depth in args.depths:
+            def loss(p, depth=depth):
+                return jnp.mean(rtjax.render(rtjax.Scene(s, p), edges=edges, depth=depth))
+
+            analysis = jax.jit(jax.grad(loss)).lower(scene.params).compile().memory_analysis()
+            memory.append((depth, analysis.temp_size_in_bytes))
+        rows.append((mode, c_f, t_f, c_g, t_g, c_j, t_j, memory))
     print(f"{s.width}x{s.height}, depth {s.default_depth}, float32, median of {args.runs} runs after compile, {jax.devices()[0].platform}")
     print(f"{'mode':28s} {'forward':>18s} {'reverse grad':>22s} {'jacfwd (24 centres)':>24s}")
-    for mode, c_f, t_f, c_g, t_g, c_j, t_j in rows:
+    for mode, c_f, t_f, c_g, t_g, c_j, t_j, _ in rows:
         print(f"{mode:28s} {t_f*1e3:7.1f} ms ({t_f/base:4.2f}x) {t_g*1e3:9.1f} ms ({t_g/base:5.2f}x) {t_j*1e3:10.1f} ms ({t_j/base:6.2f}x)")
-    print("compile (s):", "; ".join(f"{m}: forward {c_f:.1f}, grad {c_g:.1f}, jacfwd {c_j:.1f}" for m, c_f, _, c_g, _, c_j, _ in rows))
+    print("reverse / forward of the same mode:", "; ".join(f"{m}: {t_g/t_f:.1f}x" for m, _, t_f, _, t_g, *_ in rows))
+    print("compile (s):", "; ".join(f"{m}: forward {c_f:.1f}, grad {c_g:.1f}, jacfwd {c_j:.1f}" for m, c_f, _, c_g, _, c_j, _, _ in rows))
+    for mode, *_, memory in rows:
+        if memory:
+            print(f"gradient memory, {mode}:", ", ".join(f"depth {d} {b / 2**20:.1f} MiB" for d, b in memory))
 
 
 if __name__ == "__main__":
