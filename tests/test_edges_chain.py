@@ -74,3 +74,46 @@ def test_derivatives_match_the_supersampled_reference(name):
         assert c.cosine >= cos, (key, c.summary())
         assert c.median <= rel, (key, c.summary())
         assert c.pixel_cosines.min() >= pix, (key, c.summary())
+
+
+# two opaque spheres cutting into one another, seen from the front: their intersection
+# curve is an edge (`rtjax.curves`). Per-pixel cosine of jacfwd against the reference's
+# finite difference (16 × 16 samples, 0.3 px) for (sphere, axis): measured 0.911, 0.962,
+# 0.983, 0.931 (without the curves 0.827, 0.561, 0.976, 0.846)
+CUTTING = ("sphe -4 0 0 8\nopaq 0.9 0.5 0.2 0.4 10\nsphe 6 -3 1 7\nopaq 0.3 0.7 0.9 0.4 10\n"
+           "plig 0.5 -0.4 1 180 170 160\nelig 0.15\nback 30 40 90\neyep 0 -100 10\nrefp 0 0 0\nvang 20 20\n"
+           "size 32\nrend x.ras\n")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("k, axis, floor", [(1, 0, 0.90), (1, 1, 0.95), (0, 2, 0.975), (1, 3, 0.92)])
+def test_intersection_curves_are_edges(k, axis, floor):
+    import copy
+
+    import jax
+    import jax.numpy as jnp
+
+    import rtjax
+
+    s = rtjax.parse_deck(CUTTING).frames[0].scene.astype(jnp.float64)
+    frame = reference.parse_deck_text(CUTTING)[0]
+    h = 0.3 * 2 * 100 * np.tan(np.radians(10)) / 32
+
+    def moved(e):
+        f = copy.deepcopy(frame)
+        if axis == 3:
+            f.spheres[k]["r"] += e
+        else:
+            f.spheres[k]["center"][axis] += e
+        return reference.render_reference(f, depth=0, spp=SPP)
+
+    fd = (moved(h) - moved(-h)) / (2 * h)
+
+    def image(t):
+        c = s.params.centers.at[k, axis].add(t) if axis < 3 else s.params.centers
+        r = s.params.radii.at[k].add(t) if axis == 3 else s.params.radii
+        return rtjax.render(s.replace(centers=c, radii=r), edges=1.0, depth=0)
+
+    jac = np.asarray(jax.jacfwd(image)(0.0))
+    cos = float(np.sum(jac * fd) / (np.linalg.norm(jac) * np.linalg.norm(fd)))
+    assert cos >= floor, cos
