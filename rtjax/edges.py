@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from . import spheres
+from . import curves, spheres
 from .numerics import dot, normalize, safe_div, safe_sqrt, tiny
 
 #: Smallest |component| of an edge's normal used in the box filter: keeps the
@@ -264,20 +264,24 @@ class Best(NamedTuple):
     edge: Int[Array, " p"]  # its sphere, or −1
     on_hit: Bool[Array, " p"]  # the ray met that sphere (else it passed beside it)
     rays: object  # the chain's rays at that segment (`trace.Rays`, with their differentials), before it
+    partner: Int[Array, " p"]  # an intersection curve: the sphere H the edge's sphere cuts into (else −1)
 
 
 class EdgeWatch:
     """Folded over a chain's segments: keeps, per pixel, the visible silhouette nearest
     to its ray. Visible: the segment's ray meets that sphere first, from outside; or it
-    misses it and passes closest to it in front of whatever it meets."""
+    misses it and passes closest to it in front of whatever it meets. `curves`: also
+    the intersection curves of spheres cutting into the one a ray meets
+    (`curves.nearest_curve`), where they are nearer."""
 
-    def __init__(self, centers, radii, tmin, width: float):
-        self.centers, self.radii, self.tmin, self.width = centers, radii, tmin, width
+    def __init__(self, centers, radii, tmin, width: float, curves: bool = False):
+        self.centers, self.radii, self.tmin, self.width, self.curves = centers, radii, tmin, width, curves
 
     def empty(self, rays) -> Best:
         """No edge found yet (the fold's start)."""
         n = rays.weight.shape
-        return Best(jnp.full(n, jnp.inf, rays.o.dtype), jnp.full(n, -1, jnp.int32), jnp.zeros(n, bool), rays)
+        none = jnp.full(n, -1, jnp.int32)
+        return Best(jnp.full(n, jnp.inf, rays.o.dtype), none, jnp.zeros(n, bool), rays, none)
 
     def __call__(self, rays, hit: spheres.Hit, best: Best) -> Best:
         """`best` with this segment's nearest visible silhouette where it is nearer."""
@@ -302,7 +306,13 @@ class EdgeWatch:
         delta = edge_terms(*sg((rays.o, rays.d, ox, dx, oy, dy, cc, rr)))[0]
         score = jnp.where((edge >= 0) & (jnp.abs(delta) < self.width), jnp.abs(delta), jnp.inf)
         edge = jnp.where(jnp.isfinite(score), edge, -1)
-        here = Best(score, edge, hit.index == edge, rays)
+        here = Best(score, edge, hit.index == edge, rays, jnp.full_like(edge, -1))
+        if self.curves:
+            cscore, cedge = curves.nearest_curve(rays.o, rays.d, rays.diff, rays.weight > 0, hit, tab, self.centers,
+                                                 self.radii, self.width)
+            nearer = cscore < score
+            here = Best(jnp.where(nearer, cscore, score), jnp.where(nearer, cedge, edge), here.on_hit & ~nearer, rays,
+                        jnp.where(nearer, hit.index, -1))
         better = here.score < best.score
         return jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), here, best)
 
@@ -342,6 +352,46 @@ def both_sides(best: Best, centers, radii, width, sided: bool) -> Sides:
     def ray(z):  # z along the inward normal −(nx, ny), in box sides
         sx, sy = -z * width * nx, -z * width * ny
         return r0.o + sx * df.ox + sy * df.oy, normalize(r0.d + sx * df.dx + sy * df.dy)
+
+    return Sides(best.edge, alpha, -delta / width, *ray(z_in), *ray(z_out))
+
+
+def _chosen_or_met(edge, o, d, centers, radii):
+    """Centre and radius of each ray's chosen sphere; where none is chosen, a stand-in
+    sphere the ray meets (a unit sphere 2 units ahead), so that the unused branch of
+    `curves.curve_terms` has finite derivatives."""
+    use = edge >= 0
+    k = jnp.maximum(edge, 0)
+    c = jnp.where(use, centers.T[:, k], jax.lax.stop_gradient(o + 2 * d))
+    r = jnp.where(use, radii[k], 1)
+    return c, r
+
+
+def primary_sides(best: Best, primary, centers, radii, width) -> Sides:
+    """`both_sides` in box mode, the two centroids' rays taken from the eye: the primary
+    rays (o, d, their differentials) moved by the centroids' offsets in the image.
+
+    The offsets are the same in both, in sample steps; through a mirror or glass the
+    rays from the eye follow their own paths to the edge's segment (differentials,
+    shadows and hits of their own), where a pixel's centre and its sides may see
+    different things (near a rim of a mirror or glass sphere the world is compressed
+    into a sliver of the image)."""
+    o, d, df = primary
+    r0 = best.rays
+    c, r = _chosen_or_regular(best.edge, r0.o, r0.d, centers, radii)
+    delta, nx, ny, _, _ = edge_terms(r0.o, r0.d, *r0.diff, c, r)
+    curve = best.partner >= 0
+    # an intersection curve: E and H where the ray meets both (else stand-ins it meets)
+    met = jnp.where(curve, best.edge, -1)
+    ce, re = _chosen_or_met(met, r0.o, r0.d, centers, radii)
+    ch, rh = _chosen_or_met(jnp.where(curve, best.partner, -1), r0.o, r0.d, centers, radii)
+    cd, cx, cy = curves.curve_terms(r0.o, r0.d, r0.diff, ce, re, ch, rh)
+    delta, nx, ny = (jnp.where(curve, a, b) for a, b in ((cd, delta), (cx, nx), (cy, ny)))
+    alpha, z_in, z_out = split_box(-delta / width, nx, ny)
+
+    def ray(z):  # z along the inward normal −(nx, ny), in box sides
+        sx, sy = -z * width * nx, -z * width * ny
+        return o + sx * df.ox + sy * df.oy, normalize(d + sx * df.dx + sy * df.dy)
 
     return Sides(best.edge, alpha, -delta / width, *ray(z_in), *ray(z_out))
 

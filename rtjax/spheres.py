@@ -162,15 +162,24 @@ def sphere_geometry(o, d, c, r):
 
 class Toggles(NamedTuple):
     """How the silhouette mode alters a segment's hits, per ray (a sphere index or −1 for
-    none): `exclude` removes that sphere; `force` makes the ray see it (see `Hit`)."""
+    none): `exclude` removes that sphere; `force` makes the ray see it (see `Hit`).
+    `level`: the segment of the chain they alter, per ray (None: the first one traced)."""
 
     exclude: Int[Array, " p"]
     force: Int[Array, " p"]
+    level: "Int[Array, ' p'] | None" = None
 
     @staticmethod
     def off(like) -> "Toggles":
         none = jnp.full(like.shape, -1, jnp.int32)
         return Toggles(none, none)
+
+    def at(self, level) -> "Toggles":
+        """These toggles for the segment at `level` (per ray): off where it is not theirs."""
+        if self.level is None:
+            return self
+        now = level == self.level
+        return Toggles(jnp.where(now, self.exclude, -1), jnp.where(now, self.force, -1))
 
 
 class Hit(NamedTuple):

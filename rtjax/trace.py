@@ -189,7 +189,8 @@ def segment(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: 
     """
     o, d = rays.o, rays.d
     active = rays.weight > 0
-    hit = spheres.nearest_hit(o, d, p.centers, p.radii, rays.origin, m.tmin, s.culls, toggles, active)
+    hit = spheres.nearest_hit(o, d, p.centers, p.radii, rays.origin, m.tmin, s.culls,
+                              None if toggles is None else toggles.at(rays.level), active)
     entering = hit.entering
     n = jnp.where(entering, hit.normal_out, -hit.normal_out)
     motion = None if rays.diff is None else edges.hit_motion(hit, o, d, rays.diff)
@@ -271,7 +272,7 @@ def _chain(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: M
         def run(c):
             r, tg, b = c
             r2, h = segment(s, p, m, r, depth, mode, width, tg)
-            return r2, spheres.Toggles.off(tg.exclude), (b if watch is None else watch(r, h, b))
+            return r2, (tg if tg.level is not None else spheres.Toggles.off(tg.exclude)), (b if watch is None else watch(r, h, b))
 
         return jax.lax.cond(jnp.sum(carry[0].weight > 0) > nxt, run, lambda c: c, carry), None
 
@@ -339,23 +340,34 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
     sided mode. Its cost follows the edges' length, not the image's area.
     """
     m = prepare(s, p)
-    watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width)
+    watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width, curves=mode == BOX)
     rays, best = _chain(s, p, m, start_rays(o, d, mode, diff), depth, mode, width, watch=watch)
     centre = jnp.clip(rays.colour, 0, 255)
     n = o.shape[1]
     packed = pack(best.edge >= 0, edge_capacity(n) if capacity is None else min(n, capacity))
     b = packed.gather(best)
-    side = edges.both_sides(b, p.centers, p.radii, width, sided=mode == SIDED)
     r0 = b.rays
 
     def two(a, b=None):
         return jnp.concatenate([a, a if b is None else b], axis=-1)
 
     none = jnp.full(packed.index.shape, -1, jnp.int32)
-    start = Rays(two(side.o_in, side.o_out), two(side.d_in, side.d_out), two(r0.origin),
-                 two(jnp.where(packed.valid, r0.weight, 0)), two(r0.colour), two(r0.level),
-                 diff=edges.Differentials(*(two(a) for a in r0.diff)))
-    out, _ = _chain(s, p, m, start, depth, mode, width, spheres.Toggles(two(none, side.edge), two(side.edge, none)))
+    if mode == BOX:  # both sides traced from the eye, the edge's segment toggled
+        side = edges.primary_sides(b, packed.gather((o, d, diff)), p.centers, p.radii, width)
+        start = start_rays(two(side.o_in, side.o_out), two(side.d_in, side.d_out), BOX,
+                           edges.Differentials(*(two(a) for a in packed.gather(diff))))
+        start = start._replace(weight=two(packed.valid.astype(start.weight.dtype)))
+        # E's side: a silhouette's sphere forced, a curve's partner H removed; the other side: E removed
+        curve = b.partner >= 0
+        toggles = spheres.Toggles(two(jnp.where(curve, b.partner, none), side.edge),
+                                  two(jnp.where(curve, none, side.edge), none), two(r0.level))
+    else:
+        side = edges.both_sides(b, p.centers, p.radii, width, sided=True)
+        start = Rays(two(side.o_in, side.o_out), two(side.d_in, side.d_out), two(r0.origin),
+                     two(jnp.where(packed.valid, r0.weight, 0)), two(r0.colour), two(r0.level),
+                     diff=edges.Differentials(*(two(a) for a in r0.diff)))
+        toggles = spheres.Toggles(two(none, side.edge), two(side.edge, none))
+    out, _ = _chain(s, p, m, start, depth, mode, width, toggles)
     inside, outside = jnp.split(jnp.clip(out.colour, 0, 255), 2, axis=-1)
     if mode == SIDED:
         flipped, shadow_x = jnp.clip(rays.colour + rays.flip.delta, 0, 255), rays.flip.x

@@ -1,0 +1,54 @@
+"""The silhouette mode's derivatives against the yardstick of `scripts/edges_yardstick.py`
+(issue 21's table): for each scene of `tests/edge_scenes.py`, the derivatives of
+J = Σ w·image (fixed random weights) by jax.jacfwd of `render(..., edges=w, dtype=float64)`
+against the supersampled finite differences: their cosine over the parameters, the
+median relative error, the worst parameters, and the per-pixel cosine per parameter.
+
+    python scripts/edges_accuracy.py [--edges W] [--spp K] [SCENE ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(ROOT, "tests"))
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+from edge_scenes import DECKS  # noqa: E402
+from edge_derivatives import compare, derivative_images, yardsticks  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("scenes", nargs="*")
+    ap.add_argument("--edges", type=float, default=1.0)
+    ap.add_argument("--spp", type=int, default=1)
+    args = ap.parse_args()
+    for name in args.scenes or list(DECKS):
+        ys = yardsticks(name)
+        t = time.time()
+        image, jac = derivative_images(name, args.edges, args.spp)
+        elapsed = time.time() - t
+        print(f"== {name}  edges={args.edges} spp={args.spp}  ({elapsed:.0f} s)  mean |image − ss| = "
+              f"{np.abs(image - ys['image']).mean():.3f}")
+        for key in [k for k in ys if k.startswith("fd")]:
+            print(f"  vs {key}: " + compare(jac, ys[key], ys["names"]).summary())
+        cs = [compare(jac, ys[k], ys["names"]) for k in ys if k.startswith("fd")]
+        print(f"  over the yardsticks: cos ≥ {min(c.cosine for c in cs):.4f}, median ≤ "
+              f"{max(c.median for c in cs) * 100:.1f} %, pixel cos ≥ {min(c.pixel_cosines.min() for c in cs):.3f}")
+        ref = ys["fd16_0.3"]
+        for key in [k for k in ys if k.startswith("fd") and k != "fd16_0.3"]:
+            print(f"  yardsticks fd16_0.3 vs {key}: " + compare(ys[key], ref, ys["names"]).summary(short=True))
+
+
+if __name__ == "__main__":
+    main()
