@@ -71,6 +71,7 @@ class FitOptions:
     atol: float = 1e-7
     jac: str | None = None
     assignment_order: bool = False
+    photo: bool = False
 
     def __post_init__(self):
         if self.solver not in SOLVERS:
@@ -80,6 +81,8 @@ class FitOptions:
         if int(self.max_steps) < 1:
             raise FitError(f"max_steps must be ≥ 1, not {self.max_steps}")
         object.__setattr__(self, "nuisance", nuisance_names(self.nuisance or ()))
+        if self.photo and self.nuisance:
+            raise FitError("a photo fit has its own camera model (fitting.photo): give photo or nuisance, not both")
         if self.edges is not None:
             given = tuple(float(e) for e in np.ravel(self.edges))
             if not given or min(given) <= 0:

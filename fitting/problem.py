@@ -8,12 +8,14 @@ from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 import rtjax
 
 from .objective import (DENOISE, EXACT_SCALE, Objective, Samples, load_target, make_levels, match_size, nuisance_y0,
                         prepare_mask, schedule_widths)
 from .options import FitOptions
+from .photo import Photo
 from .select import Selection
 
 
@@ -51,10 +53,13 @@ class Problem:
         nuisance = options.nuisance
         if nuisance:
             y["nuisance"] = nuisance_y0(nuisance, jax.tree_util.tree_leaves(y["scene"])[0].dtype)
+        photo = Photo(full) if options.photo else None
+        if photo is not None:
+            y["photo"] = photo.y0(jax.tree_util.tree_leaves(y["scene"])[0].dtype)
         jac = options.jac
         if jac is None:
             jac = "bwd" if selection.size() > 200 else "fwd"
-        blurred = "blur" in nuisance
+        blurred = "blur" in nuisance or photo is not None
         widths = schedule_widths(full.structure.width, options.levels, blurred=blurred)
         given = options.edges or (1.0,)
         # one value: every level; several: one per level in order, the last repeating
@@ -73,5 +78,13 @@ class Problem:
         if pyramid[-1].exact:  # the same samples again, at a narrow robust scale
             pyramid.append(pyramid[-1]._replace(scale=jnp.asarray(EXACT_SCALE, dtype)))
             widths = widths + [widths[-1]]
-        objective = Objective(selection, options.depth, options.loss, options.loss_scale)
+        objective = Objective(selection, options.depth, options.loss, options.loss_scale, photo)
         return cls(full, selection, y, jac, widths, pyramid, objective)
+
+    def photo_values(self, y: dict) -> dict[str, object]:
+        """A photo fit's appearance and camera parameters at `y` in their own units
+        (floats and nested lists); empty for other fits."""
+        photo = self.objective.photo
+        if photo is None:
+            return {}
+        return {k: np.asarray(v, np.float64).tolist() for k, v in photo.values(y["photo"]).items()}

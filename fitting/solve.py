@@ -25,6 +25,7 @@ from .options import FitOptions
 from .problem import Problem
 from .select import Selection
 from .solvers import CODES, Stepper, result_message, result_name
+from .verdict import Verdict, judge
 
 
 @dataclasses.dataclass
@@ -43,6 +44,13 @@ class FitResult:
     nuisance: dict[str, float]
     times: dict[str, float]
     solver: str
+    photo: dict[str, object] = dataclasses.field(default_factory=dict)  # a photo fit's appearance and camera (`fitting.photo`)
+    verdict: Verdict | None = None  # a photo or camera-model fit's verdict (`fitting.verdict`)
+
+    @property
+    def ok(self) -> bool:
+        """Converged, and (where judged) a supported verdict: what exits 0."""
+        return self.converged and (self.verdict is None or self.verdict.ok)
 
     def table(self) -> list[tuple[str, object, object]]:
         """(parameter, start, fitted) rows in deck units."""
@@ -289,6 +297,7 @@ def fit_starts(problem: Problem, stepper: Steps, ys, begun: Sequence[rtjax.Scene
         nuisance={k: float(v) for k, v in nuisance_values(y.get("nuisance", {})).items()},
         times={"total": total, "first_step": history[0]["seconds"] if history else math.nan},
         solver=options.solver,
+        photo=problem.photo_values(y),
     )
     return MultiStartResult(best=best, index=index, starts=count, losses=losses, results=names, start_scenes=list(begun),
                             fitted=fitted, devices=stepper.devices, times={"total": total})
@@ -317,5 +326,9 @@ def fit(scene: rtjax.Scene, target, free: str | Sequence[str] = "centers", *, sp
     options = dataclasses.replace(options or FitOptions(), **settings)
     started = time.perf_counter()
     problem = Problem.build(scene, target, free, spheres, options)
-    stepper = Single(Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac))
-    return fit_starts(problem, stepper, problem.y0, [problem.scene], options, callback, started=started).best
+    stepper = Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac)
+    result = fit_starts(problem, Single(stepper), problem.y0, [problem.scene], options, callback, started=started).best
+    if options.photo or options.nuisance:
+        result.verdict = judge(problem, stepper, result.y)
+        result.times["total"] = time.perf_counter() - started
+    return result
