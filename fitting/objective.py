@@ -381,11 +381,11 @@ class Objective:
         parameters; on the full-size level the whole render through the photo's
         camera, on a coarse one each sample box-filtered to the blur's size."""
         photo = self.photo
-        scene = rtjax.Scene(scene.structure, photo.scene(scene.params, y))
         if samples.whole:
-            image = photo.camera(rtjax.render(scene, depth=self.depth, edges=1.0), y)
+            image = photo.image(scene, y, self.depth)
             i, j = (jnp.floor(samples.xy[:, a]).astype(jnp.int32) for a in (0, 1))
             return image[j, i]
+        scene = rtjax.Scene(scene.structure, photo.scene(scene.params, y))
         sigma = photo.values(y)["blur"] / samples.step
         colours = rtjax.render_samples(scene, samples.xy, step=samples.step, depth=self.depth,
                                        edges=jnp.sqrt(samples.width**2 + 12 * sigma**2))

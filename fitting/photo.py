@@ -198,6 +198,13 @@ class Photo:
         out = self.display(light, y)
         return out + (gaussian_blur(out, v["chroma"]) - out) @ jnp.asarray(CHROMA.T, out.dtype)
 
+    def image(self, scene: rtjax.Scene, y: dict, depth: int | None = None):
+        """The photo (H, W, 3) the model makes of `scene` (its geometry; the appearance
+        and camera from `y`): the silhouette-aware render (edges 1 pixel wide) through
+        `camera`. What a photo fit's full-size level matches."""
+        shown = rtjax.Scene(scene.structure, self.scene(scene.params, y))
+        return self.camera(rtjax.render(shown, depth=depth, edges=1.0), y)
+
     def camera_at(self, colours, xy, y: dict):
         """The camera at sample positions xy (K, 2) whose colours (K, 3) were box-filtered
         to the blur's size already (a coarse level): no blur of its own."""

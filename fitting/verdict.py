@@ -18,10 +18,12 @@ full-size level and names every such cause:
 
 The uncertainty is the Gauss–Newton covariance at the end, s²(JᵀJ)⁻¹ with
 s² = Σr²/(m − n) over the level's m residuals and n free coordinates (appearance and
-camera included, so that they are marginalised out), reported per sphere in scene
-units and in pixels (the pixel footprint at the sphere's distance from the eye is
-distance × 2·tan(ha/2)/width). Residuals of a photo are correlated (blur, JPEG, shading
-the model lacks), so this is a lower bound on the true uncertainty.
+camera included, so that they are marginalised out), plus, along the view, what a
+silhouette misplaced by `SILHOUETTE_BIAS` pixels does to a sphere's depth: a photo's
+residuals are correlated and biased (blur, JPEG, shading the model lacks), and the
+statistical part alone is far smaller than the errors it makes. Reported per sphere in
+scene units and in pixels (the pixel footprint at the sphere's distance from the eye
+is distance × 2·tan(ha/2)/width).
 """
 
 from __future__ import annotations
@@ -40,6 +42,12 @@ from .photo import RANGES
 #: The loosest uncertainty (1σ, pixel footprints) a free centre may have, per material
 #: kind: glass is seen through its refraction, its outline faint.
 LIMITS = {"opaq": 1.0, "mirr": 1.0, "tmap": 1.0, "trpa": 3.0}
+#: How far (pixels) a photo's silhouette may lie from where the model puts it, whatever
+#: the fit: another renderer's shading at the limb (Fresnel, sky light, its pixel filter)
+#: against the model's. Only a silhouette's size tells a sphere's depth, so this much
+#: bias moves a sphere of radius R at distance d by SILHOUETTE_BIAS·d/R pixel footprints
+#: along the view (`uncertainty`: added to the statistical covariance in that direction).
+SILHOUETTE_BIAS = 0.1
 #: A fit's loss must be below this share of a flat image's (the target's mean colour).
 FLAT_SHARE = 0.5
 #: ...and below the start geometry's (with the fitted appearance) once any centre moved
@@ -179,16 +187,27 @@ def uncertainty(problem, state, y: dict) -> list[dict]:
     fitted_params = selection.params(y["scene"])
     fitted = np.asarray(fitted_params.centers, np.float64)
     foot = footprints(fitted_params, width)
+    eye = np.asarray(fitted_params.eye, np.float64)
+    radii = np.asarray(fitted_params.radii, np.float64)
     kinds = problem.scene.structure.kinds
     out = []
     for j, i in enumerate(selection.index["centers"]):
-        block = unit**2 * cov[np.ix_(columns[j], columns[j])]
+        stat = unit**2 * cov[np.ix_(columns[j], columns[j])]
+        view = fitted[i] - eye
+        distance = float(np.linalg.norm(view))
+        view /= distance
+        # a silhouette SILHOUETTE_BIAS px too large reads as the sphere this much nearer
+        depth = SILHOUETTE_BIAS * distance * foot[i] / max(float(radii[i]), 1e-12)
+        block = stat + depth**2 * np.outer(view, view)
         worst = math.sqrt(max(float(np.linalg.eigvalsh(block).max()), 0.0))
+        stat_worst = math.sqrt(max(float(np.linalg.eigvalsh(stat).max()), 0.0))
         moved = float(np.linalg.norm(fitted[i] - start[i]))
         out.append({
             "index": int(i), "kind": kinds[i],
             "sigma": np.sqrt(np.maximum(np.diag(block), 0.0)).tolist(), "sigma_units": worst,
-            "sigma_px": worst / foot[i], "moved_units": moved, "moved_px": moved / foot[i],
+            "sigma_px": worst / foot[i], "sigma_statistical_px": stat_worst / foot[i],
+            "sigma_depth_px": math.sqrt(max(float(view @ block @ view), 0.0)) / foot[i],
+            "moved_units": moved, "moved_px": moved / foot[i],
             "footprint": float(foot[i]), "limit_px": LIMITS.get(kinds[i], 1.0),
         })
     return out

@@ -23,6 +23,7 @@ import argparse
 import json
 import math
 import os
+import resource
 import shlex
 import subprocess
 import sys
@@ -60,6 +61,17 @@ def errors(deck_path: str, truth: np.ndarray, foot: np.ndarray, free: list[int])
     return np.linalg.norm(got[free] - truth[free], axis=1) / foot[free]
 
 
+def depth_errors(deck_path: str, truth: np.ndarray, eye: np.ndarray, foot: np.ndarray, free: list[int]) -> np.ndarray:
+    """The free spheres' errors along the view (fitted − true centre, on the unit vector
+    from the eye to the true centre; negative: nearer the eye), in pixel footprints."""
+    import rtjax
+
+    got = np.asarray(rtjax.load_deck(deck_path).frames[0].scene.params.centers, np.float64)
+    view = truth[free] - eye
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    return np.sum((got[free] - truth[free]) * view, axis=1) / foot[free]
+
+
 def by_group(values: np.ndarray, kinds: list[str], free: list[int]) -> dict[str, float | None]:
     """The largest value per group (None where the photo has no sphere of it)."""
     out = {}
@@ -81,20 +93,24 @@ def run_one(photo: dict, outdir: str, flags: list[str], cache: bool) -> dict:
     env = dict(os.environ)
     if not cache:
         env["RTJAX_CACHE"] = "off"
-    started = time.perf_counter()
+    started, used = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
     done = subprocess.run(command, capture_output=True, text=True, env=env, cwd=ROOT)
     seconds = time.perf_counter() - started
+    now = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (now.ru_utime - used.ru_utime) + (now.ru_stime - used.ru_stime)  # the fit's CPU time, whatever the load
     with open(os.path.join(folder, "log.txt"), "w") as f:
         f.write(" ".join(shlex.quote(c) for c in command) + "\n\n" + done.stdout + "\n" + done.stderr)
     truth, foot, kinds = footprints(os.path.join(PHOTOS, photo["truth"]), int(photo["width"]))
     start = errors(os.path.join(PHOTOS, photo["start"]), truth, foot, free)
     row = {"name": name, "renderer": photo["renderer"], "split": photo["split"], "exit": done.returncode,
-           "seconds": seconds, "start": by_group(start, kinds, free), "start_all": start.tolist(),
+           "seconds": seconds, "cpu_seconds": cpu, "start": by_group(start, kinds, free), "start_all": start.tolist(),
            "kinds": [kinds[i] for i in free], "free": free}
     report = os.path.join(folder, "fitted.json")
     if os.path.exists(fitted) and done.returncode in (0, 1):
         end = errors(fitted, truth, foot, free)
-        row.update(end=by_group(end, kinds, free), end_all=end.tolist())
+        eye = np.asarray(rtjax_eye(os.path.join(PHOTOS, photo["truth"])), np.float64)
+        row.update(end=by_group(end, kinds, free), end_all=end.tolist(),
+                   end_depth=depth_errors(fitted, truth, eye, foot, free).tolist())
         with open(report) as f:
             data = json.load(f)
         row["verdict"] = data.get("verdict", {}).get("message") or f"{data['result']} ({data['message']})"
@@ -102,6 +118,12 @@ def run_one(photo: dict, outdir: str, flags: list[str], cache: bool) -> dict:
     else:
         row.update(end=None, end_all=None, verdict=(done.stderr.strip().splitlines() or ["no output"])[-1], iterations=None)
     return row
+
+
+def rtjax_eye(deck_path: str) -> np.ndarray:
+    import rtjax
+
+    return np.asarray(rtjax.load_deck(deck_path).frames[0].scene.params.eye, np.float64)
 
 
 def cell(value: float | None) -> str:
@@ -112,14 +134,14 @@ def markdown(rows: list[dict]) -> str:
     """The table: per photo, start and end errors per group (largest, in pixel footprints),
     time, exit code and verdict; held-out photos after the others."""
     head = ("| photo | split | start: opaque & mirror | start: glass | end: opaque & mirror | end: glass | goals met | "
-            "time | exit | verdict |\n|---|---|---|---|---|---|---|---|---|---|")
+            "time | CPU time | exit | verdict |\n|---|---|---|---|---|---|---|---|---|---|---|")
     lines = [head]
     for split in ("tune", "holdout"):
         for r in (r for r in rows if r["split"] == split):
             end = r["end"] or {}
             met = "yes" if r["end"] and goals_met(r) else "no"
             lines.append(f"| {r['name']} | {split} | {cell(r['start']['opaque & mirror'])} | {cell(r['start']['glass'])} | "
-                         f"{cell(end.get('opaque & mirror'))} | {cell(end.get('glass'))} | {met} | {r['seconds']:.0f} s | "
+                         f"{cell(end.get('opaque & mirror'))} | {cell(end.get('glass'))} | {met} | {r['seconds']:.0f} s | {r.get('cpu_seconds', math.nan):.0f} s | "
                          f"{r['exit']} | {r['verdict'].replace('|', '/')} |")
     return "\n".join(lines) + "\n"
 
