@@ -16,11 +16,13 @@ appearance parameters fitted jointly with it:
   photo's outlines by a fraction of a pixel, which the model would otherwise read as
   depth;
 - in the camera (`Photo.camera`): the render's display values decoded to linear light
-  (a power `DISPLAY_GAMMA`), a gain per channel ('gain': exposure and white balance)
-  and a smooth illumination field (a low-order polynomial in the image's coordinates,
-  of log-gain: vignetting, sky light; 'field'), a Gaussian lens blur in linear light
-  ('blur'), the tone curve back to display values with a free exponent ('gamma'), and
-  JPEG's chroma blur ('chroma').
+  (a power `DISPLAY_GAMMA`) times a smooth illumination field (a low-order polynomial
+  in the image's coordinates, of log-gain: vignetting, sky light; 'field'), a
+  Gaussian lens blur in linear light ('blur'), the tone curve back to display values
+  with a free exponent ('gamma'), a gain per channel on the display values ('gain':
+  exposure and white balance; an exposure g before the curve is g^(γ/2.2) after it,
+  the same model, but there gain and γ do not trade), and JPEG's chroma blur
+  ('chroma').
 
 Every parameter lives in a plausible range (`RANGES`) through a logistic, so no solver
 step leaves it; a parameter that ends at an end of its range that is not a natural
@@ -172,21 +174,23 @@ class Photo:
 
     def linear(self, colours, xy, y: dict):
         """Colours (…, 3) in 0..255 at image positions xy (…, 2) to the photo's linear
-        light: decoded, times the gain and the illumination field."""
+        light: decoded, times the illumination field."""
         v = self.values(y)
         u = 2 * xy[..., 0] / self.structure.width - 1
         w = 2 * xy[..., 1] / self.structure.height - 1
         field = jnp.exp(field_basis(u, w) @ v["field"].astype(colours.dtype))
         decoded = jnp.clip(colours / 255, 0, 1) ** DISPLAY_GAMMA
-        return decoded * v["gain"].astype(colours.dtype) * field[..., None]
+        return decoded * field[..., None]
 
     def display(self, light, y: dict):
-        """Linear light back to display values 0..255 through the tone curve x^(γ/2.2)."""
+        """Linear light back to display values 0..255: the tone curve x^(γ/2.2), times the
+        gain, clipped as 8 bits are."""
         v = self.values(y)
         x = jnp.clip(light, 0, 1)
         pos = x > 1e-6
         xs = jnp.where(pos, x, 1)
-        return 255 * jnp.where(pos, jnp.exp(v["gamma"] / DISPLAY_GAMMA * jnp.log(xs)), 0)
+        toned = jnp.where(pos, jnp.exp(v["gamma"] / DISPLAY_GAMMA * jnp.log(xs)), 0)
+        return 255 * jnp.clip(toned * v["gain"].astype(toned.dtype), 0, 1)
 
     def camera(self, image, y: dict):
         """A photo (H, W, 3) of a render `image` (H, W, 3): to linear light, blurred
