@@ -147,6 +147,22 @@ class Photo:
         }
         self.start = {k: v for k, v in start.items() if np.size(v) or k in ("ke", "dilate")}
 
+    def label(self, name: str, n: int, size: int) -> str:
+        """A name for entry n (of `size`) of parameter `name`: which sphere, light or
+        channel it is."""
+        if size == 1:
+            return name
+        channel = ("red", "green", "blue")
+        if name == "albedo":
+            return f"colour of sphere {int(self.opaque[n // 3])} ({channel[n % 3]})"
+        if name == "lights":
+            return f"light {n // 3 + 1} ({channel[n % 3]})"
+        if name == "kt":
+            return f"kt of sphere {int(self.glass[n])}"
+        if name in ("gain", "background"):
+            return f"{name} ({channel[n]})"
+        return f"{name}[{n}]"
+
     def y0(self, dtype) -> dict:
         """The start in the solver's coordinates."""
         return {k: jnp.asarray(RANGES[k].free(v), dtype) for k, v in self.start.items()}

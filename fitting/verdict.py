@@ -95,10 +95,11 @@ def footprints(params, width: int) -> np.ndarray:
     return distance * 2 * math.tan(math.radians(float(np.asarray(params.vang)[0])) / 2) / width
 
 
-def bounds_reached(y: dict) -> dict[str, float]:
-    """The camera and appearance parameters (photo fits: y['photo']; nuisance fits:
-    y['nuisance'], unbounded, against the same ranges) that ended at an artificial end
-    of their range, with their values."""
+def bounds_reached(y: dict, photo=None) -> dict[str, float]:
+    """The camera and appearance parameters (photo fits: y['photo'], named by `photo`,
+    a `fitting.photo.Photo`, where given; nuisance fits: y['nuisance'], unbounded,
+    against the same ranges) that ended at an artificial end of their range, with
+    their values."""
     out = {}
     for k, u in y.get("photo", {}).items():
         r = RANGES[k]
@@ -106,7 +107,7 @@ def bounds_reached(y: dict) -> dict[str, float]:
         value = np.atleast_1d(np.asarray(r.value(jnp.asarray(u)), np.float64))
         for n, (z, v) in enumerate(zip(share.ravel(), value.ravel())):
             if (r.flags[0] and z < AT_BOUND) or (r.flags[1] and z > 1 - AT_BOUND):
-                out[k if share.size == 1 else f"{k}[{n}]"] = float(v)
+                out[photo.label(k, n, share.size) if photo is not None else k if share.size == 1 else f"{k}[{n}]"] = float(v)
     for k, u in y.get("nuisance", {}).items():
         if k not in RANGES:
             continue
@@ -145,7 +146,7 @@ def judge(problem, stepper, y: dict) -> Verdict:
     judged = problem.jac == "fwd" and hasattr(state.f_info, "jac")  # a least-squares solver's forward-mode Jacobian
     spheres = uncertainty(problem, state, y) if judged else []
     causes = []
-    bounds = bounds_reached(y)
+    bounds = bounds_reached(y, objective.photo)
     if bounds:
         causes.append("ran away: " + ", ".join(f"{k} = {v:.4g}" for k, v in bounds.items())
                       + " ended at a bound of the plausible range: the model cannot explain the photo")

@@ -60,6 +60,13 @@ def test_bounds_name_runaway_parameters():
     assert bounds_reached({"nuisance": {"blur": jnp.log(7646.0)}}) == {"blur": pytest.approx(7646.0)}
 
 
+def test_bounds_name_the_sphere_and_channel(truth):
+    photo = Photo(truth)
+    y = photo.y0(jnp.float64)
+    y["albedo"] = jnp.asarray(RANGES["albedo"].free([[1.0, 1.0, 0.25]]))
+    assert bounds_reached({"photo": y}, photo) == {"colour of sphere 1 (blue)": pytest.approx(0.25, rel=0.01)}
+
+
 def test_photo_and_nuisance_are_exclusive():
     with pytest.raises(fitting.FitError, match="give photo or nuisance, not both"):
         fitting.FitOptions(photo=True, nuisance=("gain",))
