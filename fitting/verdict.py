@@ -12,18 +12,20 @@ full-size level and names every such cause:
 - the residual is no better than a trivial explanation: a flat image of the target's
   mean colour, or the start's geometry under the fitted appearance and camera (the
   geometry moved without explaining anything);
-- a free centre is determined more loosely than the goal a fit of a photo is held to
-  (`LIMITS`, pixel footprints at its distance): it moved further than its own
-  uncertainty can support.
+- a free centre is determined more loosely than the goal a fit of a photo is held to:
+  `CONFIDENCE` times its σ exceeds `LIMITS` (pixel footprints at its distance).
 
-The uncertainty is the Gauss–Newton covariance at the end, s²(JᵀJ)⁻¹ with
-s² = Σr²/(m − n) over the level's m residuals and n free coordinates (appearance and
-camera included, so that they are marginalised out), plus, along the view, what a
-silhouette misplaced by `SILHOUETTE_BIAS` pixels does to a sphere's depth: a photo's
-residuals are correlated and biased (blur, JPEG, shading the model lacks), and the
-statistical part alone is far smaller than the errors it makes. Reported per sphere in
-scene units and in pixels (the pixel footprint at the sphere's distance from the eye
-is distance × 2·tan(ha/2)/width).
+The uncertainty comes from the Jacobian J and residuals r at the end, over all n free
+coordinates (appearance and camera included, so that they are marginalised out): the
+Gauss–Newton covariance s²(JᵀJ)⁻¹, s² = Σr²/(m − n) ('sigma_statistical'), which takes
+the m residuals as independent, and the cluster-robust (sandwich) covariance
+(JᵀJ)⁻¹(Σ_b g_b g_bᵀ)(JᵀJ)⁻¹, g_b the sum of Jᵢrᵢ over the residuals in block b of
+`CLUSTER` × `CLUSTER` pixels ('sigma'), which lets residuals within a block be
+correlated: a photo's are (blur, JPEG, shading the model lacks), and where the
+shading the model lacks pulls a silhouette one way and a shadow another, the blocks'
+pulls disagree and the sandwich grows. Reported per sphere in scene units and in
+pixels (the pixel footprint at the sphere's distance from the eye is
+distance × 2·tan(ha/2)/width).
 """
 
 from __future__ import annotations
@@ -42,12 +44,12 @@ from .photo import RANGES
 #: The loosest uncertainty (1σ, pixel footprints) a free centre may have, per material
 #: kind: glass is seen through its refraction, its outline faint.
 LIMITS = {"opaq": 1.0, "mirr": 1.0, "tmap": 1.0, "trpa": 3.0}
-#: How far (pixels) a photo's silhouette may lie from where the model puts it, whatever
-#: the fit: another renderer's shading at the limb (Fresnel, sky light, its pixel filter)
-#: against the model's. Only a silhouette's size tells a sphere's depth, so this much
-#: bias moves a sphere of radius R at distance d by SILHOUETTE_BIAS·d/R pixel footprints
-#: along the view (`uncertainty`: added to the statistical covariance in that direction).
-SILHOUETTE_BIAS = 0.1
+#: Residuals within blocks this many pixels wide are taken as correlated any way
+#: (`uncertainty`'s cluster-robust covariance).
+CLUSTER = 16
+#: A centre is determined when this many of its σ (the cluster-robust one, along its
+#: worst direction) are within its goal (`LIMITS`).
+CONFIDENCE = 3.0
 #: A fit's loss must be below this share of a flat image's (the target's mean colour).
 FLAT_SHARE = 0.5
 #: ...and below the start geometry's (with the fitted appearance) once any centre moved
@@ -65,9 +67,10 @@ class Verdict:
     - `causes`: one line per cause, each naming it.
     - `losses`: ½·mean(r²) on the full-size level at the end ('end'), at the start's
       geometry with the fitted appearance ('start'), and of a flat image ('flat').
-    - `spheres`: per free centre: index, kind, σ per axis and along the worst direction
-      in scene units and in pixels, how far it moved (scene units and pixels), its
-      footprint (scene units per pixel) and limit (pixels).
+    - `spheres`: per free centre (`uncertainty`): index, kind, σ per axis, along the
+      worst direction (scene units and pixels) and along the view (pixels), the
+      Gauss–Newton σ, how far it moved (scene units and pixels), its footprint (scene
+      units per pixel) and goal (pixels).
     - `bounds`: the parameters that ended at a bound, with their values.
     """
 
@@ -158,17 +161,20 @@ def judge(problem, stepper, y: dict) -> Verdict:
     if moved > MOVED_PX and not end < start:
         causes.append(f"no better than the start: centres moved up to {moved:.2f} px but the RMS residual "
                       f"{rms['end']:.3g} levels is not below the start geometry's {rms['start']:.3g}")
-    loose = [s for s in spheres if not s["sigma_px"] <= s["limit_px"]]
+    loose = [s for s in spheres if not CONFIDENCE * s["sigma_px"] <= s["limit_px"]]
     if loose:
         causes.append("undetermined: " + ", ".join(
             f"sphere {s['index']} moved {s['moved_px']:.2f} px but is determined only to ±{s['sigma_px']:.3g} px "
-            f"(limit {s['limit_px']:g})" for s in loose))
+            f"({CONFIDENCE:g}σ over the goal of {s['limit_px']:g})" for s in loose))
     return Verdict(ok=not causes, causes=causes, losses=losses, spheres=spheres, bounds=bounds)
 
 
 def uncertainty(problem, state, y: dict) -> list[dict]:
-    """Per free centre, σ from the Gauss–Newton covariance s²(JᵀJ)⁻¹ at `y` (the
-    Jacobian and residuals from a solver `state` evaluated there)."""
+    """Per free centre at `y`, σ from the cluster-robust covariance (per axis, 'sigma';
+    along the worst direction in scene units and pixels, 'sigma_units', 'sigma_px';
+    along the view, 'sigma_depth_px') and from the Gauss–Newton one
+    ('sigma_statistical_px'); the Jacobian and residuals come from a solver `state`
+    evaluated at `y`."""
     selection = problem.selection
     if "centers" not in selection.index:
         return []
@@ -181,7 +187,17 @@ def uncertainty(problem, state, y: dict) -> list[dict]:
     s2 = float(r @ r) / max(m - n, 1)
     normal = jac.T @ jac
     ridge = 1e-12 * max(float(np.trace(normal)) / max(n, 1), 1e-300)
-    cov = s2 * np.linalg.inv(normal + ridge * np.eye(n))
+    inverse = np.linalg.inv(normal + ridge * np.eye(n))
+    cov = s2 * inverse
+    # cluster-robust (sandwich) covariance: residuals within a CLUSTER-pixel block may be
+    # correlated any way; blocks are taken as independent
+    xy = np.asarray(problem.pyramid[-1].xy, np.float64)
+    block = (xy[:, 1] // CLUSTER).astype(np.int64) * (int(problem.scene.structure.width // CLUSTER) + 1) \
+        + (xy[:, 0] // CLUSTER).astype(np.int64)
+    scores = jac * r[:, None]
+    sums = np.zeros((int(block.max()) + 1, n))
+    np.add.at(sums, np.repeat(block, m // len(block)), scores)
+    robust_cov = inverse @ (sums.T @ sums) @ inverse
     unit = selection.transform["centers"].scale  # scene units per solver unit (an affine family)
     width = problem.scene.structure.width
     start = np.asarray(selection.scene.params.centers, np.float64)
@@ -189,25 +205,20 @@ def uncertainty(problem, state, y: dict) -> list[dict]:
     fitted = np.asarray(fitted_params.centers, np.float64)
     foot = footprints(fitted_params, width)
     eye = np.asarray(fitted_params.eye, np.float64)
-    radii = np.asarray(fitted_params.radii, np.float64)
     kinds = problem.scene.structure.kinds
     out = []
     for j, i in enumerate(selection.index["centers"]):
         stat = unit**2 * cov[np.ix_(columns[j], columns[j])]
-        view = fitted[i] - eye
-        distance = float(np.linalg.norm(view))
-        view /= distance
-        # a silhouette SILHOUETTE_BIAS px too large reads as the sphere this much nearer
-        depth = SILHOUETTE_BIAS * distance * foot[i] / max(float(radii[i]), 1e-12)
-        block = stat + depth**2 * np.outer(view, view)
-        worst = math.sqrt(max(float(np.linalg.eigvalsh(block).max()), 0.0))
+        robust = unit**2 * robust_cov[np.ix_(columns[j], columns[j])]
+        worst = math.sqrt(max(float(np.linalg.eigvalsh(robust).max()), 0.0))
         stat_worst = math.sqrt(max(float(np.linalg.eigvalsh(stat).max()), 0.0))
+        view = (fitted[i] - eye) / np.linalg.norm(fitted[i] - eye)
         moved = float(np.linalg.norm(fitted[i] - start[i]))
         out.append({
             "index": int(i), "kind": kinds[i],
-            "sigma": np.sqrt(np.maximum(np.diag(block), 0.0)).tolist(), "sigma_units": worst,
+            "sigma": np.sqrt(np.maximum(np.diag(robust), 0.0)).tolist(), "sigma_units": worst,
             "sigma_px": worst / foot[i], "sigma_statistical_px": stat_worst / foot[i],
-            "sigma_depth_px": math.sqrt(max(float(view @ block @ view), 0.0)) / foot[i],
+            "sigma_depth_px": math.sqrt(max(float(view @ robust @ view), 0.0)) / foot[i],
             "moved_units": moved, "moved_px": moved / foot[i],
             "footprint": float(foot[i]), "limit_px": LIMITS.get(kinds[i], 1.0),
         })
