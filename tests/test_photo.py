@@ -1,7 +1,7 @@
 """Photo fits (`fit(..., photo=True)`, `rtjax fit --photo`): the appearance and camera
-parameters stay in their ranges, a fit through a camera the model does not share comes
-back with a supported verdict and per-sphere uncertainty, and a fit that explains
-nothing or whose camera ran away exits 1 naming the cause."""
+parameters stay in their ranges and are named at a bound, a fit through a camera the
+model does not share comes back with per-sphere uncertainty and a verdict that names
+what the photo cannot tell, and a fit that explains nothing exits 1 naming the cause."""
 
 from __future__ import annotations
 
@@ -82,9 +82,12 @@ def test_footprints_are_distance_times_pixel_angle(truth):
 @pytest.mark.slow
 def test_photo_fit_through_another_camera(tmp_path):
     """A JPEG of the truth, 96 pixels wide, rendered with 4×4 samples, its colours and
-    light changed (the model's deck keeps the old ones), blurred by σ = 1 px through a
-    tone curve and a gain the model does not have: the centres come back within a pixel
-    footprint from a unit off, the verdict is supported, every centre's σ is reported."""
+    ke changed (the model's deck keeps the old ones), blurred by σ = 1 px in linear
+    light through a tone curve and a gain the model does not have: the centres come back
+    within a pixel footprint from a unit off, no parameter at a bound, the residual far
+    below the trivial ones. Two spheres without a floor: their silhouettes' sizes cannot
+    tell a shared silhouette offset ('dilate') from their depths, and the verdict says
+    so: undetermined, each σ along the view."""
     from PIL import Image
 
     truth = scene_from_text(truth_deck(96))
@@ -98,12 +101,13 @@ def test_photo_fit_through_another_camera(tmp_path):
     err = np.linalg.norm(np.asarray(res.scene.params.centers) - np.asarray(truth.params.centers), axis=1) / foot
     assert err.max() < 1.0, (err, res.table())
     v = res.verdict
-    assert v.ok and res.ok, v.message
+    assert res.converged and not res.ok and not v.bounds
+    assert len(v.causes) == 1 and v.causes[0].startswith("undetermined: sphere 0"), v.message
     assert [s["index"] for s in v.spheres] == [0, 1]
-    assert all(0 < s["sigma_statistical_px"] and 0 < s["sigma_depth_px"] <= s["sigma_px"] * (1 + 1e-9)
-               and CONFIDENCE * s["sigma_px"] <= 1 and len(s["sigma"]) == 3 for s in v.spheres), v.spheres
+    for s in v.spheres:
+        assert CONFIDENCE * s["sigma_px"] > 1 and s["sigma_depth_px"] > 0.99 * s["sigma_px"] and len(s["sigma"]) == 3, s
     assert v.losses["end"] < v.losses["start"] and v.losses["end"] < 0.5 * v.losses["flat"]
-    assert set(res.photo) >= {"gain", "gamma", "blur", "field", "ke", "albedo"}
+    assert set(res.photo) >= {"gain", "gamma", "blur", "field", "ke", "albedo", "dilate"}
 
 
 @pytest.mark.slow
