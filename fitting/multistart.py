@@ -33,6 +33,7 @@ from .options import FitOptions
 from .problem import Problem
 from .solve import MultiStartResult, fit_starts
 from .solvers import CODES, Stepper
+from .verdict import judge
 
 #: The mesh axis the starts are laid out over.
 AXIS = "starts"
@@ -224,4 +225,8 @@ def fit_multistart(scene: rtjax.Scene, target, free: str | Sequence[str] = "cent
     structure = problem.scene.structure
     begun = [rtjax.Scene(structure, problem.selection.params(jax.tree.map(lambda a: a[k], ys)["scene"]))
              for k in range(starts)]
-    return fit_starts(problem, stepper, stepper.pad(ys), begun, options, callback, started=started, several=True)
+    result = fit_starts(problem, stepper, stepper.pad(ys), begun, options, callback, started=started, several=True)
+    if options.photo or options.nuisance:  # judged on one start: a single start's compiled step
+        single = Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac)
+        result.best.verdict = judge(problem, single, result.best.y)
+    return result

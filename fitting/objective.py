@@ -320,6 +320,7 @@ class Objective:
     depth: int | None
     loss: str
     loss_scale: float
+    photo: object = None  # a `fitting.photo.Photo`: y["photo"] holds its parameters
 
     def model(self, y: dict, samples: Samples):
         """The model's colours at the samples: the silhouette-aware render, or on an
@@ -344,6 +345,8 @@ class Objective:
         at in the level's pixels."""
         scene = rtjax.Scene(self.selection.scene.structure, self.selection.params(y["scene"]))
         nuisance = y.get("nuisance", {})
+        if self.photo is not None:
+            return self.photo_model(scene, y["photo"], samples)
 
         def render(xy, edges=samples.width):
             return rtjax.render_samples(scene, xy, step=samples.step, depth=self.depth, edges=edges)
@@ -377,12 +380,27 @@ class Objective:
 
         return centre + towards(1, e.x) * (across - centre) + towards(2, e.shadow_x) * (flipped - centre)
 
+    def photo_model(self, scene: rtjax.Scene, y: dict, samples: Samples):
+        """`model` of a photo (`fitting.photo.Photo`): the scene with its appearance
+        parameters; on the full-size level the whole render through the photo's
+        camera, on a coarse one each sample box-filtered to the blur's size."""
+        photo = self.photo
+        if samples.whole:
+            image = photo.image(scene, y, self.depth)
+            i, j = (jnp.floor(samples.xy[:, a]).astype(jnp.int32) for a in (0, 1))
+            return image[j, i]
+        scene = rtjax.Scene(scene.structure, photo.scene(scene.params, y))
+        sigma = photo.values(y)["blur"] / samples.step
+        colours = rtjax.render_samples(scene, samples.xy, step=samples.step, depth=self.depth,
+                                       edges=jnp.sqrt(samples.width**2 + 12 * sigma**2))
+        return photo.camera_at(colours, samples.xy, y)
+
     def residuals(self, y: dict, samples: Samples):
         r = (self.model(y, samples) - samples.target) * samples.weight / 255
         # in the solver's float type (see Selection.y0), whatever the render's precision
         dtype = jax.tree_util.tree_leaves(y)[0].dtype
         scale = self.loss_scale * samples.scale
-        if not samples.exact and "blur" not in y.get("nuisance", {}):
+        if not samples.exact and "blur" not in y.get("nuisance", {}) and self.photo is None:
             scale = scale * jnp.where(samples.step > 1, COARSE_SCALE, 1.0)  # a level coarser than the image
         return robust(r, self.loss, scale / 255).astype(dtype)
 

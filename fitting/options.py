@@ -78,6 +78,7 @@ class FitOptions:
     jac: str | None = None
     assignment_order: bool = False
     smooth: float = 0.0
+    photo: bool = False
 
     def __post_init__(self):
         if self.solver not in SOLVERS:
@@ -91,6 +92,8 @@ class FitOptions:
         if int(self.max_steps) < 1:
             raise FitError(f"max_steps must be ≥ 1, not {self.max_steps}")
         object.__setattr__(self, "nuisance", nuisance_names(self.nuisance or ()))
+        if self.photo and self.nuisance:
+            raise FitError("a photo fit has its own camera model (fitting.photo): give photo or nuisance, not both")
         if self.edges is not None:
             given = tuple(float(e) for e in np.ravel(self.edges))
             if not given or min(given) <= 0:

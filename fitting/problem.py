@@ -8,6 +8,7 @@ from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 import rtjax
 
@@ -15,6 +16,7 @@ from .objective import (DENOISE, EXACT_SCALE, Objective, Samples, load_target, m
                         prepare_mask, schedule_widths)
 from .matrixfree import MATRIX_FREE_ABOVE
 from .options import FitOptions
+from .photo import Photo
 from .select import Selection
 from .texels import appearance_only, texel_levels
 
@@ -53,10 +55,13 @@ class Problem:
         nuisance = options.nuisance
         if nuisance:
             y["nuisance"] = nuisance_y0(nuisance, jax.tree_util.tree_leaves(y["scene"])[0].dtype)
+        photo = Photo(full) if options.photo else None
+        if photo is not None:
+            y["photo"] = photo.y0(jax.tree_util.tree_leaves(y["scene"])[0].dtype)
         jac = options.jac
         if jac is None:
             jac = "matfree" if selection.size() > MATRIX_FREE_ABOVE else "fwd"
-        blurred = "blur" in nuisance
+        blurred = "blur" in nuisance or photo is not None
         if options.levels is None and not blurred and appearance_only(selection.families):
             # texels: the full-size image, every pixel, the plain render (`fitting.texels`)
             levels = texel_levels(target, prepare_mask(options.mask, *target.shape[:2]), dtype)
@@ -80,5 +85,13 @@ class Problem:
         if pyramid[-1].exact:  # the same samples again, at a narrow robust scale
             pyramid.append(pyramid[-1]._replace(scale=jnp.asarray(EXACT_SCALE, dtype)))
             widths = widths + [widths[-1]]
-        objective = Objective(selection, options.depth, options.loss, options.loss_scale)
+        objective = Objective(selection, options.depth, options.loss, options.loss_scale, photo)
         return cls(full, selection, y, jac, widths, pyramid, objective)
+
+    def photo_values(self, y: dict) -> dict[str, object]:
+        """A photo fit's appearance and camera parameters at `y` in their own units
+        (floats and nested lists); empty for other fits."""
+        photo = self.objective.photo
+        if photo is None:
+            return {}
+        return {k: np.asarray(v, np.float64).tolist() for k, v in photo.values(y["photo"]).items()}

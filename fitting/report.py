@@ -38,7 +38,17 @@ def table_text(result: FitResult) -> str:
         if math.isfinite(loss)
         else f"solver {result.solver}: {result.result} ({result.message})"
     )
+    if result.verdict is not None:
+        lines += verdict_lines(result)
     return "\n".join(lines)
+
+
+def verdict_lines(result: FitResult) -> list[str]:
+    """A judged fit's per-sphere uncertainty and its verdict (`fitting.verdict`)."""
+    v = result.verdict
+    lines = [f"sphere {s['index']} ({s['kind']}): moved {s['moved_px']:.2f} px, σ {s['sigma_units']:.3g} units "
+             f"= {s['sigma_px']:.3g} px" for s in v.spheres]
+    return lines + [("verdict: " if v.ok else "verdict: FAILED: ") + v.message]
 
 
 def report_dict(result: FitResult, deck: str | None = None, target: str | None = None) -> dict:
@@ -59,6 +69,8 @@ def report_dict(result: FitResult, deck: str | None = None, target: str | None =
         "nuisance": result.nuisance,
         "history": result.history,
         "texels": result.texels.summary() if result.texels is not None else None,
+        **({"photo": result.photo} if result.photo else {}),
+        **({"verdict": result.verdict.as_dict()} if result.verdict is not None else {}),
     }
 
 

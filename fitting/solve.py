@@ -28,6 +28,7 @@ from .problem import Problem
 from .select import Selection
 from .solvers import CODES, Stepper, result_message, result_name
 from .texels import Smoothed, TexelCoverage, coverage
+from .verdict import Verdict, judge
 
 
 @dataclasses.dataclass
@@ -47,6 +48,13 @@ class FitResult:
     times: dict[str, float]
     solver: str
     texels: TexelCoverage | None = None  # with textures free: which texels the views determine
+    photo: dict[str, object] = dataclasses.field(default_factory=dict)  # a photo fit's appearance and camera (`fitting.photo`)
+    verdict: Verdict | None = None  # a photo or camera-model fit's verdict (`fitting.verdict`)
+
+    @property
+    def ok(self) -> bool:
+        """Converged, and (where judged) a supported verdict: what exits 0."""
+        return self.converged and (self.verdict is None or self.verdict.ok)
 
     def table(self) -> list[tuple[str, object, object]]:
         """(parameter, start, fitted) rows in deck units."""
@@ -293,6 +301,7 @@ def fit_starts(problem: Problem, stepper: Steps, ys, begun: Sequence[rtjax.Scene
         nuisance={k: float(v) for k, v in nuisance_values(y.get("nuisance", {})).items()},
         times={"total": total, "first_step": history[0]["seconds"] if history else math.nan},
         solver=options.solver,
+        photo=problem.photo_values(y),
     )
     return MultiStartResult(best=best, index=index, starts=count, losses=losses, results=names, start_scenes=list(begun),
                             fitted=fitted, devices=stepper.devices, times={"total": total})
@@ -334,8 +343,11 @@ def fit(scene: rtjax.Scene | Sequence[rtjax.Scene], target, free: str | Sequence
         if "textures" not in problem.selection.families:
             raise FitError("smooth is a prior on texels: fit textures with it")
         problem = dataclasses.replace(problem, objective=Smoothed(problem.objective, problem.selection, options.smooth))
-    stepper = Single(Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac))
-    result = fit_starts(problem, stepper, problem.y0, [problem.scene], options, callback, started=started).best
+    stepper = Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac)
+    result = fit_starts(problem, Single(stepper), problem.y0, [problem.scene], options, callback, started=started).best
     if "textures" in problem.selection.families:
         result.texels = coverage(views, options.mask, options.depth, smoothed=bool(options.smooth))
+    if options.photo or options.nuisance:
+        result.verdict = judge(problem, stepper, result.y)
+        result.times["total"] = time.perf_counter() - started
     return result

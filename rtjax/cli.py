@@ -260,6 +260,7 @@ def cmd_fit(args) -> int:
         mask=args.mask,
         assignment_order=args.assignment_order,
         smooth=args.smooth,
+        photo=args.photo,
     )
     progress = _Progress(args.max_steps, args.quiet or jax.process_index() != 0, args.interrupts)
     several = args.starts > 1 or args.devices != 1
@@ -279,7 +280,7 @@ def cmd_fit(args) -> int:
     finally:
         progress.close()
     if jax.process_index() != 0:  # several hosts: the first one writes and reports
-        return 0 if result.converged else 1
+        return 0 if result.ok else 1
     fitted = fitting.fitted_scenes(scenes, result.selection, result.y) if several_frames else None
     paths = save_outputs(result, outdir, stem, args.deck, ", ".join(targets), image_name=f"{stem}.sunimg", frames=fitted)
     if several:
@@ -288,7 +289,7 @@ def cmd_fit(args) -> int:
     if several:
         print(summary_line(multi))
     print("wrote " + ", ".join(paths[k] for k in ("deck", "image", "report", "plot")))
-    return 0 if result.converged else 1
+    return 0 if result.ok else 1
 
 
 def cmd_bench(args) -> int:
@@ -368,6 +369,11 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--loss", choices=("l2", "huber", "cauchy"), default="cauchy", help="residual loss (default cauchy: robust)")
     f.add_argument("--loss-scale", type=float, default=10.0, help="robust loss scale in levels (default 10)")
     f.add_argument("--nuisance", default="", help="also fit a camera model for a photo-like target: gain,gamma,blur,chroma,order, or camera (all five: response, Gaussian blur in pixels, JPEG chroma blur, blur before/after the response)")
+    f.add_argument("--photo", action="store_true",
+                   help="the target is a photo (another renderer, a camera): fit a camera model and the scene's appearance "
+                        "(colours, ambient, background, lights, an illumination field) with the geometry, and judge the "
+                        "result (exit 1 with the cause where a parameter ran away, the residual explains nothing, or a "
+                        "centre is undetermined); not with --nuisance")
     f.add_argument("--mask", default=None, help="an image whose dark pixels are ignored")
     f.add_argument("--frame", type=int, default=0, help="which rend frame of the deck to fit (default 0)")
     f.add_argument("--smooth", type=float, default=0.0, metavar="WEIGHT",
