@@ -8,52 +8,21 @@
 # numbers quoted in the text are printed by the cells above them.
 
 # %%
-import os, pathlib, time
-
-# RTJAX_NOTEBOOK_QUICK=1: the reduced mode the test suite runs (small images, few
-# iterations); every cell still runs.
-QUICK = os.environ.get("RTJAX_NOTEBOOK_QUICK") == "1"
-
-# the repository root: the first folder up from here that holds scenes/ex2s3.dat
-ROOT = pathlib.Path.cwd().resolve()
-while not (ROOT / "scenes" / "ex2s3.dat").exists():
-    if ROOT == ROOT.parent:
-        raise FileNotFoundError("run this notebook from inside the rtjax repository")
-    ROOT = ROOT.parent
-SCENES = ROOT / "scenes"
-
-import struct, tempfile
+import pathlib, struct, tempfile, time
 
 import jax
-import jax.numpy as jnp
-import matplotlib.pyplot as plt
 import numpy as np
 
 import rtjax
+
+rtjax.tune_cpu()  # before the first JAX computation: XLA's faster CPU code (docs/DEVICES.md)
+from nbsetup import QUICK, SCENES, show
 
 WIDTH = 96 if QUICK else None  # None: every deck at its own size
 print(f"rtjax {rtjax.__version__}, jax {jax.__version__} on {jax.default_backend()}; quick mode: {QUICK}")
 
 
 # %%
-def show(images, titles=None, height=2.8, max_width=15.0, cmap=None):
-    """Images side by side; (H, W, 3) arrays in 0..255 are shown as 8-bit files hold them."""
-    images = [np.asarray(im) for im in images]
-    widths = [height * im.shape[1] / im.shape[0] for im in images]
-    k = min(1.0, max_width / (sum(widths) + 0.3 * len(images)))
-    fig, axes = plt.subplots(1, len(images), figsize=(k * (sum(widths) + 0.3 * len(images)), k * height + 0.45),
-                             squeeze=False, gridspec_kw={"width_ratios": widths})
-    for ax, im, title in zip(axes[0], images, titles or [""] * len(images)):
-        if im.ndim == 3:
-            ax.imshow(rtjax.to_uint8(im), interpolation="nearest")
-        else:  # one channel, 0..255 (difference images: white = none)
-            ax.imshow(im, cmap=cmap or "gray", vmin=0, vmax=255, interpolation="nearest")
-        ax.set_title(title, fontsize=9)
-        ax.axis("off")
-    fig.tight_layout(pad=0.3)
-    plt.show()
-
-
 # count XLA compilations: JAX reports each one as a monitoring event
 COMPILES = []
 jax.monitoring.register_event_duration_secs_listener(

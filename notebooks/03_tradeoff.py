@@ -15,32 +15,19 @@
 # and shows each image with a derivative image, all finite.
 
 # %%
-import os, pathlib, time
-
-# RTJAX_NOTEBOOK_QUICK=1: the reduced mode the test suite runs (small images, few
-# iterations); every cell still runs.
-QUICK = os.environ.get("RTJAX_NOTEBOOK_QUICK") == "1"
-
-# the repository root: the first folder up from here that holds scenes/ex2s3.dat
-ROOT = pathlib.Path.cwd().resolve()
-while not (ROOT / "scenes" / "ex2s3.dat").exists():
-    if ROOT == ROOT.parent:
-        raise FileNotFoundError("run this notebook from inside the rtjax repository")
-    ROOT = ROOT.parent
-SCENES = ROOT / "scenes"
-
-import dataclasses, functools, tempfile
+import dataclasses, functools, os
 
 import jax
-
-jax.config.update("jax_enable_x64", True)  # the reference renders in float64 (decks stay float32)
 import jax.numpy as jnp
 import matplotlib.pyplot as plt
 import numpy as np
-from IPython.display import Image as PNG, display
 
 import rtjax
 from rtjax import bench
+
+rtjax.tune_cpu()  # before the first JAX computation: XLA's faster CPU code (docs/DEVICES.md)
+jax.config.update("jax_enable_x64", True)  # the reference renders in float64 (decks stay float32)
+from nbsetup import QUICK, SCENES, show, show_png
 
 if QUICK:  # small images, one timed run each, no derivative timings
     CFG = bench.Config(ref_depth=6, ref_spp=2, depths=(0,), spps=(1, 2), edges=(1.0,), scales=(0.5, 1.0), repeats=1,
@@ -49,33 +36,6 @@ else:  # `rtjax bench --quick` (reference 8×8 samples at depth 12, derivatives 
     CFG = dataclasses.replace(bench.Config.quick(), repeats=5)
 EXTREME_WIDTH = 32 if QUICK else 96
 print(f"quick mode: {QUICK}; {os.cpu_count()} CPU cores, jax {jax.__version__} on {jax.default_backend()}")
-
-
-# %%
-def show(images, titles=None, height=2.8, max_width=15.0, cmap=None):
-    """Images side by side; (H, W, 3) arrays in 0..255 are shown as 8-bit files hold them."""
-    images = [np.asarray(im) for im in images]
-    widths = [height * im.shape[1] / im.shape[0] for im in images]
-    k = min(1.0, max_width / (sum(widths) + 0.3 * len(images)))
-    fig, axes = plt.subplots(1, len(images), figsize=(k * (sum(widths) + 0.3 * len(images)), k * height + 0.45),
-                             squeeze=False, gridspec_kw={"width_ratios": widths})
-    for ax, im, title in zip(axes[0], images, titles or [""] * len(images)):
-        if im.ndim == 3:
-            ax.imshow(rtjax.to_uint8(im), interpolation="nearest")
-        else:  # one channel, 0..255 (difference images: white = none)
-            ax.imshow(im, cmap=cmap or "gray", vmin=0, vmax=255, interpolation="nearest")
-        ax.set_title(title, fontsize=9)
-        ax.axis("off")
-    fig.tight_layout(pad=0.3)
-    plt.show()
-
-
-def show_png(draw, *args):
-    """Run a plotting function that writes a PNG (rtjax.bench's plots do), show the PNG."""
-    path = os.path.join(tempfile.mkdtemp(prefix="rtjax_nb_"), "plot.png")
-    draw(*args, path)
-    get_ipython().run_line_magic("matplotlib", "inline")  # they select Agg: back to inline figures
-    display(PNG(filename=path))
 
 
 # %% [markdown]
