@@ -27,7 +27,7 @@ import fitting
 import rtjax
 
 rtjax.tune_cpu()  # before the first JAX computation: XLA's faster CPU code (docs/DEVICES.md)
-from nbsetup import QUICK, show
+from nbsetup import QUICK, SCENES, show
 
 WIDTH = 64 if QUICK else 240          # image width of truth, target and fits
 STEPS = (10, 8, 6) if QUICK else (30, 20, 25)  # iterations: centres, colours and ke, photo-like target
