@@ -46,6 +46,7 @@ class FrameObjective:
     selections share the first frame's start, so one y means the same values in all)."""
 
     objectives: list[Objective]
+    photo: None = None  # photo fits take one target (`Objective.photo`)
 
     @property
     def scenes(self) -> list[rtjax.Scene]:
@@ -77,6 +78,8 @@ def build_frames(scenes: Sequence[rtjax.Scene], targets: Sequence, free: str | S
         raise FitError("no frames to fit")
     if len(scenes) != len(targets):
         raise FitError(f"{len(targets)} targets for {len(scenes)} frames: give one target per frame")
+    if options.photo:
+        raise FitError("a photo fit takes one photo: fit several frames without photo")
     same_scene(scenes)
     problems = [Problem.build(scene, target, free, spheres, options) for scene, target in zip(scenes, targets)]
     first = problems[0]

@@ -129,6 +129,8 @@ def test_one_target_per_frame(ball):
     _, truths, _ = ball
     with pytest.raises(fitting.FitError, match="1 targets for 2 frames"):
         fitting.fit(truths, [rendered(truths[0])], "textures")
+    with pytest.raises(fitting.FitError, match="a photo fit takes one photo"):
+        fitting.fit(truths, [rendered(t) for t in truths], "centers", photo=True)
 
 
 @pytest.mark.slow
