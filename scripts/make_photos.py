@@ -661,7 +661,6 @@ def contact_sheet(photos: list[dict], path: str) -> None:
 
 def make(only: str | None, force: bool) -> None:
     import numpy as np
-    import rtjax
 
     os.makedirs(CACHE, exist_ok=True)
     write_ex2s3_copy()
