@@ -191,8 +191,14 @@ def camera(image, nuisance: dict, *, logs: bool = False):
     else:
         out = apply_nuisance(image, given)
     if "chroma" in value:
-        out = out + (gaussian_blur(out, value["chroma"]) - out) @ jnp.asarray(CHROMA.T, out.dtype)
+        out = chroma_blur(out, value["chroma"])
     return out
+
+
+def chroma_blur(image, sigma):
+    """`image` (H, W, 3) with its chroma alone (Cb, Cr of JPEG's YCbCr) blurred by σ
+    pixels: what JPEG's 4:2:0 chroma subsampling does to a photo."""
+    return image + (gaussian_blur(image, sigma) - image) @ jnp.asarray(CHROMA.T, image.dtype)
 
 
 class Samples(NamedTuple):

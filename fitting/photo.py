@@ -39,7 +39,7 @@ import numpy as np
 
 import rtjax
 
-from .objective import CHROMA, gaussian_blur
+from .objective import chroma_blur, gaussian_blur
 
 #: The exponent that decodes the render's display values to linear light (the photo's
 #: renderer lit the deck's colours as sRGB values), and encodes them back.
@@ -216,7 +216,7 @@ class Photo:
         j, i = jnp.meshgrid(jnp.arange(h, dtype=image.dtype) + 0.5, jnp.arange(w, dtype=image.dtype) + 0.5, indexing="ij")
         light = gaussian_blur(self.linear(image, jnp.stack([i, j], -1), y), v["blur"])
         out = self.display(light, y)
-        return out + (gaussian_blur(out, v["chroma"]) - out) @ jnp.asarray(CHROMA.T, out.dtype)
+        return chroma_blur(out, v["chroma"])
 
     def image(self, scene: rtjax.Scene, y: dict, depth: int | None = None):
         """The photo (H, W, 3) the model makes of `scene` (its geometry; the appearance
