@@ -35,22 +35,21 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PHOTOS = os.path.join(ROOT, "scenes", "photos")
 #: What each material counts as in the table.
 GROUPS = {"opaq": "opaque & mirror", "mirr": "opaque & mirror", "tmap": "opaque & mirror", "trpa": "glass"}
-#: The goals, in pixel footprints, per group.
-GOALS = {"opaque & mirror": 1.0, "glass": 3.0}
+def goals() -> dict[str, float]:
+    """The goals, in pixel footprints, per group: the verdict's limits (`fitting.verdict.LIMITS`)."""
+    from fitting.verdict import LIMITS
+
+    return {"opaque & mirror": LIMITS["opaq"], "glass": LIMITS["trpa"]}
 
 
 def footprints(deck_path: str, width: int) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """The deck's centres (N, 3), each centre's pixel footprint (scene units per pixel at
-    its distance from the eye) for an image `width` pixels wide, and each sphere's kind."""
+    """The deck's centres (N, 3), each centre's pixel footprint (`fitting.verdict.footprints`)
+    for an image `width` pixels wide, and each sphere's kind."""
     import rtjax
+    from fitting.verdict import footprints as footprints_of
 
     scene = rtjax.load_deck(deck_path).frames[0].scene
-    p = scene.params
-    centres = np.asarray(p.centers, np.float64)
-    eye = np.asarray(p.eye, np.float64)
-    ha = float(np.asarray(p.vang)[0])
-    angle = 2 * math.tan(math.radians(ha) / 2) / width
-    return centres, np.linalg.norm(centres - eye, axis=1) * angle, list(scene.structure.kinds)
+    return np.asarray(scene.params.centers, np.float64), footprints_of(scene.params, width), list(scene.structure.kinds)
 
 
 def errors(deck_path: str, truth: np.ndarray, foot: np.ndarray, free: list[int]) -> np.ndarray:
@@ -75,7 +74,7 @@ def depth_errors(deck_path: str, truth: np.ndarray, eye: np.ndarray, foot: np.nd
 def by_group(values: np.ndarray, kinds: list[str], free: list[int]) -> dict[str, float | None]:
     """The largest value per group (None where the photo has no sphere of it)."""
     out = {}
-    for group in GOALS:
+    for group in goals():
         v = [float(x) for x, i in zip(values, free) if GROUPS[kinds[i]] == group]
         out[group] = max(v) if v else None
     return out
@@ -148,7 +147,7 @@ def markdown(rows: list[dict]) -> str:
 
 def goals_met(row: dict) -> bool:
     """Every opaque and mirror centre within 1 footprint, every glass one within 3."""
-    return all(v is None or v <= GOALS[g] for g, v in row["end"].items())
+    return all(v is None or v <= goals()[g] for g, v in row["end"].items())
 
 
 def main(argv=None) -> int:
