@@ -330,30 +330,30 @@ class Sides(NamedTuple):
     d_out: Float[Array, "3 p"]
 
 
-#: `both_sides(sided=True)`: how far past the edge, in box widths, each side is traced.
+#: `both_sides`: how far past the edge, in box widths, each side is traced.
 ACROSS = 0.05
 
 
-def both_sides(best: Best, centers, radii, width, sided: bool) -> Sides:
-    """Coverage α (differentiable in the scene) and the rays through the centroids of
-    the inside and outside parts of the pixel's box, offset along the ray differentials.
+def offset_rays(o, d, df: Differentials, z, width, nx, ny):
+    """Rays (o, d) moved `z` box sides along an edge's inward normal −(nx, ny) in the
+    image, by their differentials `df` (a box is `width` sample steps wide)."""
+    sx, sy = -z * width * nx, -z * width * ny
+    return o + sx * df.ox + sy * df.oy, normalize(d + sx * df.dx + sy * df.dy)
 
-    `sided`: instead, the rays just inside and just outside the edge (`ACROSS` box
-    widths from it) where it passes nearest to the pixel's centre: the colours a
-    pixel-centre sample takes when the edge moves across it."""
+
+def both_sides(best: Best, centers, radii, width) -> Sides:
+    """The sided mode's sides: coverage α (differentiable in the scene) and the rays just
+    inside and just outside the edge (`ACROSS` box widths from it) where it passes nearest
+    to the pixel's centre, offset along the edge segment's ray differentials: the colours
+    a pixel-centre sample takes when the edge moves across it."""
     r0 = best.rays
-    df = r0.diff
     c, r = _chosen_or_regular(best.edge, r0.o, r0.d, centers, radii)
-    delta, nx, ny, _, _ = edge_terms(r0.o, r0.d, *df, c, r)
-    alpha, z_in, z_out = split_box(-delta / width, nx, ny)
-    if sided:  # the edge lies at z = −x = δ/width along the inward normal
-        z_in, z_out = delta / width + ACROSS, delta / width - ACROSS
-
-    def ray(z):  # z along the inward normal −(nx, ny), in box sides
-        sx, sy = -z * width * nx, -z * width * ny
-        return r0.o + sx * df.ox + sy * df.oy, normalize(r0.d + sx * df.dx + sy * df.dy)
-
-    return Sides(best.edge, alpha, -delta / width, *ray(z_in), *ray(z_out))
+    delta, nx, ny, _, _ = edge_terms(r0.o, r0.d, *r0.diff, c, r)
+    alpha, _, _ = split_box(-delta / width, nx, ny)
+    # the edge lies at z = −x = δ/width along the inward normal
+    z_in, z_out = delta / width + ACROSS, delta / width - ACROSS
+    return Sides(best.edge, alpha, -delta / width, *offset_rays(r0.o, r0.d, r0.diff, z_in, width, nx, ny),
+                 *offset_rays(r0.o, r0.d, r0.diff, z_out, width, nx, ny))
 
 
 def _chosen_or_met(edge, o, d, centers, radii):
@@ -368,8 +368,9 @@ def _chosen_or_met(edge, o, d, centers, radii):
 
 
 def primary_sides(best: Best, primary, centers, radii, width) -> Sides:
-    """`both_sides` in box mode, the two centroids' rays taken from the eye: the primary
-    rays (o, d, their differentials) moved by the centroids' offsets in the image.
+    """The box mode's sides: coverage α and the rays through the centroids of the inside
+    and outside parts of the pixel's box, taken from the eye: the primary rays (o, d,
+    their differentials) moved by the centroids' offsets in the image.
 
     The offsets are the same in both, in sample steps; through a mirror or glass the
     rays from the eye follow their own paths to the edge's segment (differentials,
@@ -388,12 +389,8 @@ def primary_sides(best: Best, primary, centers, radii, width) -> Sides:
     cd, cx, cy = curves.curve_terms(r0.o, r0.d, r0.diff, ce, re, ch, rh)
     delta, nx, ny = (jnp.where(curve, a, b) for a, b in ((cd, delta), (cx, nx), (cy, ny)))
     alpha, z_in, z_out = split_box(-delta / width, nx, ny)
-
-    def ray(z):  # z along the inward normal −(nx, ny), in box sides
-        sx, sy = -z * width * nx, -z * width * ny
-        return o + sx * df.ox + sy * df.oy, normalize(d + sx * df.dx + sy * df.dy)
-
-    return Sides(best.edge, alpha, -delta / width, *ray(z_in), *ray(z_out))
+    return Sides(best.edge, alpha, -delta / width, *offset_rays(o, d, df, z_in, width, nx, ny),
+                 *offset_rays(o, d, df, z_out, width, nx, ny))
 
 
 class EdgeSamples(NamedTuple):

@@ -362,7 +362,7 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
         toggles = spheres.Toggles(two(jnp.where(curve, b.partner, none), side.edge),
                                   two(jnp.where(curve, none, side.edge), none), two(r0.level))
     else:
-        side = edges.both_sides(b, p.centers, p.radii, width, sided=True)
+        side = edges.both_sides(b, p.centers, p.radii, width)
         start = Rays(two(side.o_in, side.o_out), two(side.d_in, side.d_out), two(r0.origin),
                      two(jnp.where(packed.valid, r0.weight, 0)), two(r0.colour), two(r0.level),
                      diff=edges.Differentials(*(two(a) for a in r0.diff)))
