@@ -389,6 +389,7 @@ show([photo_target, photo_model, difference(photo_model, photo_target, gain=3)],
 # highlights, inter-reflections and soft shadow edges. The centres are carried by
 # silhouettes and shadow outlines; depth (along the view) is the least determined
 # direction, seen only through each silhouette's size and perspective. The σ column
-# is the Gauss–Newton uncertainty at the end; a photo's residuals are correlated
-# (blur, JPEG, unmodelled shading), so it is a lower bound. docs/FITTING.md has the
-# whole photo set's table (`scripts/eval_photos.py`).
+# is the verdict's cluster-robust (sandwich) uncertainty over 16-pixel blocks, which
+# allows for residuals correlated within a block (blur, JPEG); the bias of shading the
+# model lacks is not in it. docs/FITTING.md has the whole photo set's table
+# (`scripts/eval_photos.py`).
