@@ -317,10 +317,10 @@ class EdgeWatch:
         floor = jnp.asarray(tiny(t.dtype), t.dtype)
         r = sg(self.radii)[:, None]
         r2 = r**2
-        # the outline cone's angular gap (`outline_terms`) and a bound on its rate per
-        # sample step, |∂d| + |∂o|·(1 + r/q)/|f|: |gap|/reach ≤ |δ| (`_candidates`)
+        # |sin g| ≤ |g|, g the outline cone's angular gap (`outline_terms`), and a bound
+        # on g's rate per sample step, |∂d| + |∂o|·(1 + r/q)/|f|: |sin g|/reach ≤ |δ|
         q = safe_sqrt(tab.f2 - r2, floor)  # the distance to the outline's tangent points
-        gap = jnp.arctan2(safe_sqrt(tab.l2, floor) * q - t * r, safe_sqrt(tab.l2, floor) * r + t * q)
+        gap = (safe_sqrt(tab.l2, floor) * q - t * r) / tab.f2
         moved = safe_sqrt(dot(ox, ox) + dot(oy, oy), floor)
         reach = safe_sqrt(dot(dx, dx) + dot(dy, dy), floor) + moved * (1 + r / q) / safe_sqrt(tab.f2, floor)
         k = jnp.arange(n)[:, None]
