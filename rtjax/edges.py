@@ -317,10 +317,12 @@ class EdgeWatch:
         floor = jnp.asarray(tiny(t.dtype), t.dtype)
         r = sg(self.radii)[:, None]
         r2 = r**2
-        # |sin g| ≤ |g|, g the outline cone's angular gap (`outline_terms`), and a bound
-        # on g's rate per sample step, |∂d| + |∂o|·(1 + r/q)/|f|: |sin g|/reach ≤ |δ|
+        # |sin g| ≤ |g| (1 where |g| ≥ π/2), g the outline cone's angular gap
+        # (`outline_terms`), over a bound on g's rate per sample step,
+        # |∂d| + |∂o|·(1 + r/q)/|f|: a lower bound of |δ|
         q = safe_sqrt(tab.f2 - r2, floor)  # the distance to the outline's tangent points
-        gap = (safe_sqrt(tab.l2, floor) * q - t * r) / tab.f2
+        l = safe_sqrt(tab.l2, floor)
+        gap = jnp.where(l * r + t * q > 0, (l * q - t * r) / tab.f2, 1)
         moved = safe_sqrt(dot(ox, ox) + dot(oy, oy), floor)
         reach = safe_sqrt(dot(dx, dx) + dot(dy, dy), floor) + moved * (1 + r / q) / safe_sqrt(tab.f2, floor)
         k = jnp.arange(n)[:, None]
