@@ -2,13 +2,14 @@
 
 A pixel-centre render is piecewise constant across a sphere's silhouette and across a
 shadow's edge, so its derivative misses what moves them. Spheres make both edges
-analytic. For any ray (o, d) and sphere (c, r), the ray passes the sphere's outline at
-the signed distance |l| − r (l: the offset of the ray from the centre), and with the
-ray's differentials (how o and d change per pixel: ∂o, ∂d, carried along the chain
-through reflections and refractions by forward-mode AD) that distance changes per
-pixel by l̂·(∂o + t·∂d) across and down, t being where along the ray it passes closest.
-Their ratio δ is the signed distance to the edge in pixels and the gradient's
-direction is the edge's normal in the image. Two edges are handled that way:
+analytic. A ray (o, d) passes a sphere (c, r)'s outline at the signed angular gap
+g = φ − asin(r/|f|) (φ: the angle between d and the direction to the centre), and a
+parallel light's shadow ray passes an occluder's shadow cylinder at |l| − r (l: the
+offset of the ray from the centre). With the ray's differentials (how o and d change
+per pixel: ∂o, ∂d, carried along the chain through reflections and refractions by
+forward-mode AD) each changes per pixel at a rate across and down; their ratio δ is
+the signed distance to the edge in pixels and the rate's direction is the edge's
+normal in the image. Two edges are handled that way:
 
 * Silhouettes, on every segment of the chain (seen directly, in mirrors, through
   glass). Per pixel the one visible silhouette nearest to its ray over the whole chain
@@ -126,9 +127,10 @@ def hit_motion(hit: spheres.Hit, o, d, diff: Differentials) -> Motion:
 
 
 def edge_terms(o, d, ox, dx, oy, dy, c, r):
-    """Signed distance δ (in sample steps) from rays to a sphere's outline, positive
-    outside; the outline's normal (nx, ny) in the image; where along the ray it passes
-    closest (t); whether the ray starts outside the sphere.
+    """Signed distance δ (in sample steps) from rays to |l| = r, positive outside: for a
+    parallel light's shadow ray, the occluder's shadow cylinder (silhouettes use
+    `outline_terms`); the edge's normal (nx, ny) in the image; where along the ray it
+    passes closest (t); whether the ray starts outside the sphere.
 
     Rays (3, P) against one sphere per ray (c: (3, P)), or broadcast (3, N, P)."""
     f, b, lvec = spheres.offsets(o, d, c)
