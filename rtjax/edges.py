@@ -2,13 +2,14 @@
 
 A pixel-centre render is piecewise constant across a sphere's silhouette and across a
 shadow's edge, so its derivative misses what moves them. Spheres make both edges
-analytic. For any ray (o, d) and sphere (c, r), the ray passes the sphere's outline at
-the signed distance |l| − r (l: the offset of the ray from the centre), and with the
-ray's differentials (how o and d change per pixel: ∂o, ∂d, carried along the chain
-through reflections and refractions by forward-mode AD) that distance changes per
-pixel by l̂·(∂o + t·∂d) across and down, t being where along the ray it passes closest.
-Their ratio δ is the signed distance to the edge in pixels and the gradient's
-direction is the edge's normal in the image. Two edges are handled that way:
+analytic. A ray (o, d) passes a sphere (c, r)'s outline at the signed angular gap
+g = φ − asin(r/|f|) (φ: the angle between d and the direction to the centre), and a
+parallel light's shadow ray passes an occluder's shadow cylinder at |l| − r (l: the
+offset of the ray from the centre). With the ray's differentials (how o and d change
+per pixel: ∂o, ∂d, carried along the chain through reflections and refractions by
+forward-mode AD) each changes per pixel at a rate across and down; their ratio δ is
+the signed distance to the edge in pixels and the rate's direction is the edge's
+normal in the image. Two edges are handled that way:
 
 * Silhouettes, on every segment of the chain (seen directly, in mirrors, through
   glass). Per pixel the one visible silhouette nearest to its ray over the whole chain
@@ -126,9 +127,10 @@ def hit_motion(hit: spheres.Hit, o, d, diff: Differentials) -> Motion:
 
 
 def edge_terms(o, d, ox, dx, oy, dy, c, r):
-    """Signed distance δ (in sample steps) from rays to a sphere's outline, positive
-    outside; the outline's normal (nx, ny) in the image; where along the ray it passes
-    closest (t); whether the ray starts outside the sphere.
+    """Signed distance δ (in sample steps) from rays to |l| = r, positive outside: for a
+    parallel light's shadow ray, the occluder's shadow cylinder (silhouettes use
+    `outline_terms`); the edge's normal (nx, ny) in the image; where along the ray it
+    passes closest (t); whether the ray starts outside the sphere.
 
     Rays (3, P) against one sphere per ray (c: (3, P)), or broadcast (3, N, P)."""
     f, b, lvec = spheres.offsets(o, d, c)
@@ -140,6 +142,30 @@ def edge_terms(o, d, ox, dx, oy, dy, c, r):
     ry = dot(lhat, oy + t * dy)
     rate = safe_sqrt(rx**2 + ry**2, floor)
     return safe_div(l - r, rate), safe_div(rx, rate), safe_div(ry, rate), t, dot(f, f) > r**2
+
+
+def outline_terms(o, d, ox, dx, oy, dy, c, r):
+    """Signed distance δ (in sample steps) from rays to a sphere's outline as seen from
+    their origins, positive outside, and the outline's normal (nx, ny) in the image.
+
+    The distance is angular: g = φ − φ_s, φ the angle between the ray and the direction
+    to the centre, φ_s = asin(r/|f|) the outline cone's half angle (one atan2, without
+    the angles' cancellation), its rate per sample step from the ray differentials.
+    |l| − r (`edge_terms`) has the same zero set, but it goes as sin φ, which is far
+    from linear where a ray passes a sphere seen large and near its tangent, as a
+    reflected ray passes the floor near its horizon: there its linearised distance was
+    off by up to half a pixel. Rays (3, P) against one sphere per ray (c: (3, P))."""
+    floor = jnp.asarray(tiny(o.dtype), o.dtype)
+
+    def g(o, d):
+        f, b, lvec = spheres.offsets(o, d, c)
+        l, q = safe_sqrt(dot(lvec, lvec), floor), safe_sqrt(dot(f, f) - r**2, floor)
+        return jnp.arctan2(l * q + b * r, l * r - b * q)
+
+    gap, rx = jax.jvp(g, (o, d), (ox, dx))
+    ry = jax.jvp(g, (o, d), (oy, dy))[1]
+    rate = safe_sqrt(rx**2 + ry**2, floor)
+    return safe_div(gap, rate), safe_div(rx, rate), safe_div(ry, rate)
 
 
 def _chosen_or_regular(edge, o, d, centers, radii):
@@ -155,17 +181,17 @@ def _chosen_or_regular(edge, o, d, centers, radii):
     return jnp.where(edge >= 0, c, jax.lax.stop_gradient(stand_in)), r
 
 
-def _candidates(tab: spheres.Table, radii, reach, ok, width: float):
-    """Per ray, the sphere whose outline is nearest in sample steps among the `ok` ones
+def _candidates(gap, reach, ok, width: float):
+    """Per ray, the sphere whose edge is nearest in sample steps among the `ok` ones
     within `width` steps, or −1.
 
-    The exact distance δ = (|l| − r)/rate needs each sphere's own l̂; `reach` (per ray
-    and sphere, or per ray), the length of the ray's whole footprint at the sphere, is at
-    least that rate, so |l| − r over it is a lower bound of |δ|: no edge within `width`
-    is missed, and only the chosen sphere's δ is computed exactly (`edge_terms`). The
-    choice among several outlines within reach follows the bound (they agree up to the
-    footprint's shape)."""
-    gap = jnp.sqrt(tab.l2) - jax.lax.stop_gradient(radii)[:, None]
+    The exact distance δ needs each sphere's own edge normal; `gap` (per ray and
+    sphere: |l| − r for a shadow cylinder, the angular gap for an outline) over `reach`
+    (per ray and sphere, or per ray), a bound on gap's rate over the ray's footprint,
+    is a lower bound of |δ|: no edge within `width` is missed, and only the chosen
+    sphere's δ is computed exactly (`edge_terms`, `outline_terms`). The choice among
+    several edges within reach follows the bound (they agree up to the footprint's
+    shape)."""
     bound = jnp.abs(gap) / reach
     return _nearest(jnp.where(ok & (bound < width), bound, jnp.inf))
 
@@ -225,7 +251,7 @@ def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, motion: M
     reach = safe_sqrt(sg(dot(motion.x, motion.x) + dot(motion.y, motion.y)), jnp.asarray(tiny(ray.dtype), ray.dtype))
     own = hit.index[None, :] == jnp.arange(n)[:, None]
     ahead = (-tab.b > tmin) & ~own & hit.found[None, :]
-    edge = _candidates(tab, radii, reach, ahead, width)
+    edge = _candidates(jnp.sqrt(tab.l2) - sg(radii)[:, None], reach, ahead, width)
     hard = spheres.transmission(hit.point, ray, centers, radii, hit.index, tmin, factor, skip=edge, tab=tab)
     c, r = _chosen_or_regular(edge, hit.point, ray, centers, radii)
     delta_e, nx, ny, _, _ = edge_terms(hit.point, ray, motion.x, still, motion.y, still, c, r)
@@ -290,20 +316,27 @@ class EdgeWatch:
         sg = jax.lax.stop_gradient
         ox, dx, oy, dy = sg(tuple(rays.diff))
         t = -tab.b
-        # |∂o + t·∂d| over x and y: the footprint's length at t, for `_candidates`
-        a, b, c = dot(ox, ox) + dot(oy, oy), dot(ox, dx) + dot(oy, dy), dot(dx, dx) + dot(dy, dy)
-        reach = safe_sqrt(jnp.maximum(a + 2 * t * b + t * t * c, 0), jnp.asarray(tiny(t.dtype), t.dtype))
+        floor = jnp.asarray(tiny(t.dtype), t.dtype)
+        r = sg(self.radii)[:, None]
+        r2 = r**2
+        # |sin g| ≤ |g| (1 where |g| ≥ π/2), g the outline cone's angular gap
+        # (`outline_terms`), over a bound on g's rate per sample step,
+        # |∂d| + |∂o|·(1 + r/q)/|f|: a lower bound of |δ|
+        q = safe_sqrt(tab.f2 - r2, floor)  # the distance to the outline's tangent points
+        l = safe_sqrt(tab.l2, floor)
+        gap = jnp.where(l * r + t * q > 0, (l * q - t * r) / tab.f2, 1)
+        moved = safe_sqrt(dot(ox, ox) + dot(oy, oy), floor)
+        reach = safe_sqrt(dot(dx, dx) + dot(dy, dy), floor) + moved * (1 + r / q) / safe_sqrt(tab.f2, floor)
         k = jnp.arange(n)[:, None]
-        r2 = sg(self.radii)[:, None] ** 2
         outside = tab.f2 > r2
         is_hit = hit.index[None, :] == k
-        inside_outline = tab.l2 < r2
+        inside_outline = (tab.l2 < r2) & (t > 0)  # within the outline's cone, ahead
         met = is_hit & hit.entering[None, :] & inside_outline
-        passed = ~is_hit & ~inside_outline & (t > self.tmin) & (~hit.found[None, :] | (t < hit.t[None, :]))
+        passed = ~is_hit & ~inside_outline & (q > self.tmin) & (~hit.found[None, :] | (q < hit.t[None, :]))
         ok = (rays.weight > 0)[None, :] & outside & (rays.origin[None, :] != k) & (met | passed)
-        edge = _candidates(tab, self.radii, reach, ok, self.width)
+        edge = _candidates(gap, reach, ok, self.width)
         cc, rr = _chosen_or_regular(edge, rays.o, rays.d, self.centers, self.radii)
-        delta = edge_terms(*sg((rays.o, rays.d, ox, dx, oy, dy, cc, rr)))[0]
+        delta = outline_terms(*sg((rays.o, rays.d, ox, dx, oy, dy, cc, rr)))[0]
         score = jnp.where((edge >= 0) & (jnp.abs(delta) < self.width), jnp.abs(delta), jnp.inf)
         edge = jnp.where(jnp.isfinite(score), edge, -1)
         here = Best(score, edge, hit.index == edge, rays, jnp.full_like(edge, -1))
@@ -348,7 +381,7 @@ def both_sides(best: Best, centers, radii, width) -> Sides:
     a pixel-centre sample takes when the edge moves across it."""
     r0 = best.rays
     c, r = _chosen_or_regular(best.edge, r0.o, r0.d, centers, radii)
-    delta, nx, ny, _, _ = edge_terms(r0.o, r0.d, *r0.diff, c, r)
+    delta, nx, ny = outline_terms(r0.o, r0.d, *r0.diff, c, r)
     alpha, _, _ = split_box(-delta / width, nx, ny)
     # the edge lies at z = −x = δ/width along the inward normal
     z_in, z_out = delta / width + ACROSS, delta / width - ACROSS
@@ -380,7 +413,7 @@ def primary_sides(best: Best, primary, centers, radii, width) -> Sides:
     o, d, df = primary
     r0 = best.rays
     c, r = _chosen_or_regular(best.edge, r0.o, r0.d, centers, radii)
-    delta, nx, ny, _, _ = edge_terms(r0.o, r0.d, *r0.diff, c, r)
+    delta, nx, ny = outline_terms(r0.o, r0.d, *r0.diff, c, r)
     curve = best.partner >= 0
     # an intersection curve: E and H where the ray meets both (else stand-ins it meets)
     met = jnp.where(curve, best.edge, -1)

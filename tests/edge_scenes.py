@@ -38,8 +38,10 @@ DECKS = {
         + "eyep 0 -100 14\nrefp 0 0 -7\nvang 24 24\nsize 48\nrend x.ras\n",
         6,
     ),
-    # a glass sphere of high index seen near its rim, where refraction inside turns into
-    # total internal reflection, in front of an opaque sphere and the floor
+    # a glass sphere of high index (2.4) seen near its rim, in front of an opaque sphere
+    # and the floor. (Named for total internal reflection, which no ray meets here: a
+    # chord of a sphere makes equal angles at both ends, so a ray that refracted in
+    # refracts out; the reference counts 0 TIR events in all four scenes.)
     "tir": (
         FLOOR
         + "sphe 0 -20 -3 9\ntrpa 0.9 2.4 0.2 10\n"
