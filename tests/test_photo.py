@@ -36,12 +36,13 @@ def test_ranges_keep_every_value_inside():
 
 
 def test_photo_starts_as_the_deck(truth):
-    """At its start the photo's scene is the deck's (factors 1, the deck's ke, no dilation)
+    """At its start the photo's scene is the deck's (its colours and background, the deck's ke, no dilation)
     and its camera only blurs: the largest-looking opaque sphere keeps its colour."""
     photo = Photo(truth)
     y = photo.y0(jnp.float32)
     params = photo.scene(truth.params, y)
     np.testing.assert_allclose(np.asarray(params.diffuse), np.asarray(truth.params.diffuse), rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(params.background), np.asarray(truth.params.background), rtol=1e-5)
     np.testing.assert_allclose(np.asarray(params.radii), np.asarray(truth.params.radii), rtol=1e-6)
     assert abs(float(params.ke) - float(truth.params.ke)) < 1e-5
     assert photo.anchor == 0 and list(photo.opaque) == [1]
@@ -60,11 +61,15 @@ def test_bounds_name_runaway_parameters():
     assert bounds_reached({"nuisance": {"blur": jnp.log(7646.0)}}) == {"blur": pytest.approx(7646.0)}
 
 
-def test_bounds_name_the_sphere_and_channel(truth):
+def test_bounds_name_the_channel_and_leave_colours_alone(truth):
+    """A gain at the end of its range is named by channel; a colour or background channel
+    at 0 or 1 (a black or white channel: natural ends) is not."""
     photo = Photo(truth)
     y = photo.y0(jnp.float64)
-    y["albedo"] = jnp.asarray(RANGES["albedo"].free([[1.0, 1.0, 0.25]]))
-    assert bounds_reached({"photo": y}, photo) == {"colour of sphere 1 (blue)": pytest.approx(0.25, rel=0.01)}
+    y["albedo"] = jnp.asarray(RANGES["albedo"].free([[1.0, 0.5, 0.0]]))
+    y["background"] = jnp.asarray(RANGES["background"].free([0.0, 0.5, 1.0]))
+    y["gain"] = jnp.asarray(RANGES["gain"].free([1.0, 1.0, 0.25]))
+    assert bounds_reached({"photo": y}, photo) == {"gain (blue)": pytest.approx(0.25, rel=0.01)}
 
 
 def test_photo_and_nuisance_are_exclusive():
