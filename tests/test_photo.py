@@ -133,3 +133,20 @@ def test_cli_photo_of_nothing_exits_1_naming_the_cause(tmp_path):
     assert not verdict["ok"] and verdict["causes"]
     assert any(c.startswith(("no better than a flat image", "ran away", "undetermined")) for c in verdict["causes"])
     assert [s["index"] for s in verdict["spheres"]] == [0, 1]
+
+
+@pytest.mark.slow
+def test_multistart_photo_fit_is_judged_on_its_best_start():
+    """`fit_multistart(..., photo=True)` judges the start it keeps: a flat grey photo is
+    explained better by a flat image, the verdict says so, and its spheres' moves are
+    those of the kept start's centres from the deck's."""
+    truth = scene_from_text(truth_deck(32))
+    grey = np.full((truth.structure.height, truth.structure.width, 3), 128.0)
+    res = fitting.fit_multistart(truth, grey, "centers", starts=2, seed=1, photo=True, max_steps=4)
+    v = res.best.verdict
+    assert v is not None and not v.ok
+    assert any(c.startswith("no better than a flat image") for c in v.causes), v.message
+    moved_by = np.linalg.norm(np.asarray(res.best.scene.params.centers, np.float64)
+                              - np.asarray(truth.params.centers, np.float64), axis=1)
+    assert [s["index"] for s in v.spheres] == [0, 1]
+    np.testing.assert_allclose([s["moved_units"] for s in v.spheres], moved_by, rtol=1e-4, atol=1e-6)
