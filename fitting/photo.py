@@ -6,10 +6,11 @@ vignetting, a tone curve, JPEG) and its colours all differ. The geometry is carr
 silhouettes, occlusion boundaries and shadow edges; everything else is absorbed by
 appearance parameters fitted jointly with it:
 
-- in the scene (`Photo.scene`): a factor per colour channel on the diffuse colour of
-  every opaque sphere but the one that looks largest (`Photo.anchor`, a floor say:
-  the camera's gain sets its colour, so that gain and colours do not trade), on the
-  background ('background') and on every light after the first ('lights'); the ambient coefficient ('ke'); each glass sphere's
+- in the scene (`Photo.scene`): the diffuse colour of every opaque sphere but the one
+  that looks largest (`Photo.anchor`, a floor say: the camera's gain sets its colour,
+  so that gain and colours do not trade), per channel in [0, 1] ('albedo'); the
+  background colour, per channel in 0..255 ('background'); a factor per channel on every
+  light after the first ('lights'); the ambient coefficient ('ke'); each glass sphere's
   transmission ('kt'); and an offset of every silhouette, in pixels ('dilate': every
   sphere's radius but a floor's grows by that many pixel footprints at its distance):
   a tone curve, a blur taken in another colour space or darkened limbs move a
@@ -81,13 +82,15 @@ class Range:
         return 1 / (1 + np.exp(-np.asarray(u, np.float64)))
 
 
-#: Each parameter's plausible range. Factors (albedo, background, lights, gain) are
+#: Each parameter's plausible range. Colours (albedo, background) are the scene's own,
+#: on their whole range (a deck's diffuse 0..1, its background 0..255 as a share of 255),
+#: whose ends are natural (a black or white channel); factors (lights, gain) are
 #: relative to the deck's values; the field's coefficients are log-gains at the image's
 #: edges; blur and chroma are Gaussian σ in pixels (0.1, a sharp image, is a natural
 #: limit); ke and kt are the deck's own [0, 1]; dilate is in pixels.
 RANGES = {
-    "albedo": Range(0.25, 4.0, log=True),
-    "background": Range(0.25, 4.0, log=True),
+    "albedo": Range(0.0, 1.0, flags=(False, False)),
+    "background": Range(0.0, 1.0, flags=(False, False)),
     "lights": Range(0.25, 4.0, log=True),
     "ke": Range(0.0, 1.0, flags=(False, True)),
     "kt": Range(0.0, 1.0, flags=(False, False)),
@@ -103,6 +106,9 @@ CAMERA = ("gain", "field", "blur", "gamma", "chroma")
 #: Start values of the camera's parameters: no change but a slight blur (a lens, a
 #: renderer's pixel filter) and JPEG's usual chroma blur.
 CAMERA_START = {"blur": 0.7, "gamma": 1.0, "chroma": 0.5}
+#: Colours (albedo, background) start at the deck's, at least this far inside their
+#: range: at an end the logistic's slope would hold them there.
+COLOUR_MARGIN = 0.02
 #: The smooth illumination field's terms, in the image's coordinates u, v ∈ [−1, 1].
 FIELD_TERMS = 5
 
@@ -135,8 +141,8 @@ class Photo:
         self.glass = np.flatnonzero(s.mask("trpa"))
         self.rounded = np.flatnonzero(radii <= FLOOR_RATIO * np.median(radii)) if len(radii) else np.zeros(0, int)
         start = {
-            "albedo": np.ones((len(self.opaque), 3)),
-            "background": np.ones(3),
+            "albedo": np.clip(np.asarray(p.diffuse, np.float64)[self.opaque].reshape(-1, 3), COLOUR_MARGIN, 1 - COLOUR_MARGIN),
+            "background": np.clip(np.asarray(p.background, np.float64) / 255, COLOUR_MARGIN, 1 - COLOUR_MARGIN),
             "lights": np.ones((max(s.n_lights - 1, 0), 3)),
             "ke": np.clip(float(p.ke), 0.02, 0.9),
             "kt": np.clip(np.asarray(p.kt, np.float64)[self.glass], 0.02, 0.98),
@@ -176,9 +182,9 @@ class Photo:
         v = self.values(y)
         dtype = params.diffuse.dtype
         new = {
-            "diffuse": params.diffuse.at[self.opaque].set(params.diffuse[self.opaque] * v["albedo"].astype(dtype))
+            "diffuse": params.diffuse.at[self.opaque].set(v["albedo"].astype(dtype))
             if len(self.opaque) else params.diffuse,
-            "background": params.background * v["background"].astype(dtype),
+            "background": 255 * v["background"].astype(dtype),
             "ke": v["ke"].astype(dtype),
             "radii": params.radii.at[self.rounded].add((v["dilate"] * self.footprint[self.rounded]).astype(dtype)),
         }

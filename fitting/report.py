@@ -47,7 +47,7 @@ def verdict_lines(result: FitResult) -> list[str]:
     """A judged fit's per-sphere uncertainty and its verdict (`fitting.verdict`)."""
     v = result.verdict
     lines = [f"sphere {s['index']} ({s['kind']}): moved {s['moved_px']:.2f} px, σ {s['sigma_units']:.3g} units "
-             f"= {s['sigma_px']:.3g} px" for s in v.spheres]
+             f"= {s['sigma_px']:.3g} px, bias {s['bias_px']:.3g} px" for s in v.spheres]
     return lines + [("verdict: " if v.ok else "verdict: FAILED: ") + v.message]
 
 

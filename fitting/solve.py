@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
 import time
 from collections.abc import Callable, Sequence
 from typing import Protocol
@@ -195,10 +196,13 @@ class Single:
 
     size = devices = 1
 
-    def __init__(self, stepper: Stepper):
+    def __init__(self, stepper: Stepper, ahead: threading.Thread | None = None):
         self.stepper = stepper
+        self.ahead = ahead  # compiling the whole-image level's step (`Stepper.compile_ahead`)
 
     def init(self, y, samples):
+        if self.ahead is not None and getattr(samples, "whole", False):
+            self.ahead.join()  # its step compiled once, not again beside it
         return self.stepper.init(y, samples)
 
     def step(self, y, state, samples, active):
@@ -344,7 +348,12 @@ def fit(scene: rtjax.Scene | Sequence[rtjax.Scene], target, free: str | Sequence
             raise FitError("smooth is a prior on texels: fit textures with it")
         problem = dataclasses.replace(problem, objective=Smoothed(problem.objective, problem.selection, options.smooth))
     stepper = Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac)
-    result = fit_starts(problem, Single(stepper), problem.y0, [problem.scene], options, callback, started=started).best
+    pyramid = problem.pyramid
+    ahead = stepper.compile_ahead(problem.y0, pyramid[-1]) if len(pyramid) > 1 and getattr(pyramid[-1], "whole", False) else None
+    result = fit_starts(problem, Single(stepper, ahead), problem.y0, [problem.scene], options, callback,
+                        started=started).best
+    if ahead is not None:
+        ahead.join()
     if "textures" in problem.selection.families:
         result.texels = coverage(views, options.mask, options.depth, smoothed=bool(options.smooth))
     if options.photo or options.nuisance:

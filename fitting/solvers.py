@@ -7,6 +7,8 @@ optimistix result comes back as an integer code of this module's own table (`RES
 
 from __future__ import annotations
 
+import threading
+
 import equinox as eqx
 import jax
 import jax.flatten_util
@@ -150,6 +152,19 @@ class Stepper:
         """The solver's state at y on the level whose samples are `args`."""
         f_struct, aux_struct = jax.eval_shape(lambda: self.fn(y, args))
         return self.solver.init(self.fn, y, args, self.options, f_struct, aux_struct, frozenset())
+
+    def compile_ahead(self, y, args) -> threading.Thread:
+        """Compiles `step` for the level `args` in a background thread, started and
+        returned: a level with a program of its own (a photo's whole-image level) is
+        compiled while the levels before it run, and its first step finds the
+        executable (JAX keeps it) instead of compiling on the critical path."""
+
+        def work():
+            self.step.lower(y, self.init(y, args), args).compile()
+
+        thread = threading.Thread(target=work, name="compile ahead", daemon=True)
+        thread.start()
+        return thread
 
     def advance(self, y, state, args):
         """One solver step: returns (y, state, done, result code, loss), where y is the last

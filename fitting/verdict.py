@@ -23,7 +23,13 @@ the m residuals as independent, and the cluster-robust (sandwich) covariance
 `CLUSTER` × `CLUSTER` pixels ('sigma'), which lets residuals within a block be
 correlated: a photo's are (blur, JPEG, shading the model lacks), and where the
 shading the model lacks pulls a silhouette one way and a shadow another, the blocks'
-pulls disagree and the sandwich grows. Reported per sphere in scene units and in
+pulls disagree and the sandwich grows. Neither covers a bias: shading the model lacks
+pulls every block the same way (depth along the view, mostly). A bias estimate is
+added to the sandwich σ in quadrature ('bias_px'): the shift of the optimum, one
+Gauss–Newton step from the end, when only the `EDGE_SHARE` of pixels where the free
+centres' Jacobian is largest (silhouettes, shadow and reflection edges) keep their
+weight, the others 1e-3 of it: where the interior shading disagrees with the edges the
+two optima differ. Reported per sphere in scene units and in
 pixels (the pixel footprint at the sphere's distance from the eye is
 distance × 2·tan(ha/2)/width).
 """
@@ -47,8 +53,11 @@ LIMITS = {"opaq": 1.0, "mirr": 1.0, "tmap": 1.0, "trpa": 3.0}
 #: Residuals within blocks this many pixels wide are taken as correlated any way
 #: (`uncertainty`'s cluster-robust covariance).
 CLUSTER = 16
-#: A centre is determined when this many of its σ (the cluster-robust one, along its
-#: worst direction) are within its goal (`LIMITS`).
+#: The share of pixels, those with the largest Jacobian of the free centres, that keep
+#: their weight in the bias estimate (`uncertainty`).
+EDGE_SHARE = 0.2
+#: A centre is determined when this many of its σ (the cluster-robust one along its
+#: worst direction, with the bias estimate in quadrature) are within its goal (`LIMITS`).
 CONFIDENCE = 3.0
 #: A fit's loss must be below this share of a flat image's (the target's mean colour).
 FLAT_SHARE = 0.5
@@ -69,7 +78,7 @@ class Verdict:
       geometry with the fitted appearance ('start'), and of a flat image ('flat').
     - `spheres`: per free centre (`uncertainty`): index, kind, σ per axis, along the
       worst direction (scene units and pixels) and along the view (pixels), the
-      Gauss–Newton σ, how far it moved (scene units and pixels), its footprint (scene
+      Gauss–Newton σ, the bias estimate and the σ the verdict uses (pixels), how far it moved (scene units and pixels), its footprint (scene
       units per pixel) and goal (pixels).
     - `bounds`: the parameters that ended at a bound, with their values.
     """
@@ -161,11 +170,12 @@ def judge(problem, stepper, y: dict) -> Verdict:
     if moved > MOVED_PX and not end < start:
         causes.append(f"no better than the start: centres moved up to {moved:.2f} px but the RMS residual "
                       f"{rms['end']:.3g} levels is not below the start geometry's {rms['start']:.3g}")
-    loose = [s for s in spheres if not CONFIDENCE * s["sigma_px"] <= s["limit_px"]]
+    loose = [s for s in spheres if not CONFIDENCE * s["sigma_total_px"] <= s["limit_px"]]
     if loose:
         causes.append("undetermined: " + ", ".join(
-            f"sphere {s['index']} moved {s['moved_px']:.2f} px but is determined only to ±{s['sigma_px']:.3g} px "
-            f"({CONFIDENCE:g}σ over the goal of {s['limit_px']:g})" for s in loose))
+            f"sphere {s['index']} moved {s['moved_px']:.2f} px but is determined only to ±{s['sigma_total_px']:.3g} px "
+            f"(σ {s['sigma_px']:.3g}, bias {s['bias_px']:.3g}; {CONFIDENCE:g}σ over the goal of {s['limit_px']:g})"
+            for s in loose))
     return Verdict(ok=not causes, causes=causes, losses=losses, spheres=spheres, bounds=bounds)
 
 
@@ -173,7 +183,8 @@ def uncertainty(problem, state, y: dict) -> list[dict]:
     """Per free centre at `y`, σ from the cluster-robust covariance (per axis, 'sigma';
     along the worst direction in scene units and pixels, 'sigma_units', 'sigma_px';
     along the view, 'sigma_depth_px') and from the Gauss–Newton one
-    ('sigma_statistical_px'); the Jacobian and residuals come from a solver `state`
+    ('sigma_statistical_px'), the bias estimate ('bias_px', `EDGE_SHARE`) and σ with
+    it in quadrature ('sigma_total_px', what the verdict uses); the Jacobian and residuals come from a solver `state`
     evaluated at `y`."""
     selection = problem.selection
     if "centers" not in selection.index:
@@ -198,6 +209,11 @@ def uncertainty(problem, state, y: dict) -> list[dict]:
     sums = np.zeros((int(block.max()) + 1, n))
     np.add.at(sums, np.repeat(block, m // len(block)), scores)
     robust_cov = inverse @ (sums.T @ sums) @ inverse
+    # the bias estimate: the Gauss-Newton shift of the optimum with the edge pixels alone weighted
+    per_pixel = np.abs(jac[:, columns.ravel()]).reshape(len(block), -1).sum(1)
+    edge = np.repeat(np.where(per_pixel > np.quantile(per_pixel, 1 - EDGE_SHARE), 1.0, 1e-3), m // len(block))
+    weighted = jac.T @ (jac * edge[:, None])
+    shift = -np.linalg.solve(weighted + ridge * np.eye(n), jac.T @ (edge * r))
     unit = selection.transform["centers"].scale  # scene units per solver unit (an affine family)
     width = problem.scene.structure.width
     start = np.asarray(selection.scene.params.centers, np.float64)
@@ -214,11 +230,13 @@ def uncertainty(problem, state, y: dict) -> list[dict]:
         stat_worst = math.sqrt(max(float(np.linalg.eigvalsh(stat).max()), 0.0))
         view = (fitted[i] - eye) / np.linalg.norm(fitted[i] - eye)
         moved = float(np.linalg.norm(fitted[i] - start[i]))
+        bias = unit * float(np.linalg.norm(shift[columns[j]])) / foot[i]
         out.append({
             "index": int(i), "kind": kinds[i],
             "sigma": np.sqrt(np.maximum(np.diag(robust), 0.0)).tolist(), "sigma_units": worst,
             "sigma_px": worst / foot[i], "sigma_statistical_px": stat_worst / foot[i],
             "sigma_depth_px": math.sqrt(max(float(view @ robust @ view), 0.0)) / foot[i],
+            "bias_px": bias, "sigma_total_px": math.hypot(worst / foot[i], bias),
             "moved_units": moved, "moved_px": moved / foot[i],
             "footprint": float(foot[i]), "limit_px": LIMITS.get(kinds[i], 1.0),
         })

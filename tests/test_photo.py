@@ -36,12 +36,13 @@ def test_ranges_keep_every_value_inside():
 
 
 def test_photo_starts_as_the_deck(truth):
-    """At its start the photo's scene is the deck's (factors 1, the deck's ke, no dilation)
+    """At its start the photo's scene is the deck's (its colours and background, the deck's ke, no dilation)
     and its camera only blurs: the largest-looking opaque sphere keeps its colour."""
     photo = Photo(truth)
     y = photo.y0(jnp.float32)
     params = photo.scene(truth.params, y)
     np.testing.assert_allclose(np.asarray(params.diffuse), np.asarray(truth.params.diffuse), rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(params.background), np.asarray(truth.params.background), rtol=1e-5)
     np.testing.assert_allclose(np.asarray(params.radii), np.asarray(truth.params.radii), rtol=1e-6)
     assert abs(float(params.ke) - float(truth.params.ke)) < 1e-5
     assert photo.anchor == 0 and list(photo.opaque) == [1]
@@ -60,11 +61,15 @@ def test_bounds_name_runaway_parameters():
     assert bounds_reached({"nuisance": {"blur": jnp.log(7646.0)}}) == {"blur": pytest.approx(7646.0)}
 
 
-def test_bounds_name_the_sphere_and_channel(truth):
+def test_bounds_name_the_channel_and_leave_colours_alone(truth):
+    """A gain at the end of its range is named by channel; a colour or background channel
+    at 0 or 1 (a black or white channel: natural ends) is not."""
     photo = Photo(truth)
     y = photo.y0(jnp.float64)
-    y["albedo"] = jnp.asarray(RANGES["albedo"].free([[1.0, 1.0, 0.25]]))
-    assert bounds_reached({"photo": y}, photo) == {"colour of sphere 1 (blue)": pytest.approx(0.25, rel=0.01)}
+    y["albedo"] = jnp.asarray(RANGES["albedo"].free([[1.0, 0.5, 0.0]]))
+    y["background"] = jnp.asarray(RANGES["background"].free([0.0, 0.5, 1.0]))
+    y["gain"] = jnp.asarray(RANGES["gain"].free([1.0, 1.0, 0.25]))
+    assert bounds_reached({"photo": y}, photo) == {"gain (blue)": pytest.approx(0.25, rel=0.01)}
 
 
 def test_photo_and_nuisance_are_exclusive():
@@ -128,3 +133,20 @@ def test_cli_photo_of_nothing_exits_1_naming_the_cause(tmp_path):
     assert not verdict["ok"] and verdict["causes"]
     assert any(c.startswith(("no better than a flat image", "ran away", "undetermined")) for c in verdict["causes"])
     assert [s["index"] for s in verdict["spheres"]] == [0, 1]
+
+
+@pytest.mark.slow
+def test_multistart_photo_fit_is_judged_on_its_best_start():
+    """`fit_multistart(..., photo=True)` judges the start it keeps: a flat grey photo is
+    explained better by a flat image, the verdict says so, and its spheres' moves are
+    those of the kept start's centres from the deck's."""
+    truth = scene_from_text(truth_deck(32))
+    grey = np.full((truth.structure.height, truth.structure.width, 3), 128.0)
+    res = fitting.fit_multistart(truth, grey, "centers", starts=2, seed=1, photo=True, max_steps=4)
+    v = res.best.verdict
+    assert v is not None and not v.ok
+    assert any(c.startswith("no better than a flat image") for c in v.causes), v.message
+    moved_by = np.linalg.norm(np.asarray(res.best.scene.params.centers, np.float64)
+                              - np.asarray(truth.params.centers, np.float64), axis=1)
+    assert [s["index"] for s in v.spheres] == [0, 1]
+    np.testing.assert_allclose([s["moved_units"] for s in v.spheres], moved_by, rtol=1e-4, atol=1e-6)
