@@ -65,13 +65,20 @@ class Roots(NamedTuple):
 def roots(b, l2, r, is_origin, tmin) -> Roots:
     """The roots −b ∓ √(r² − |l|²) of rays against spheres (any broadcast shapes), and
     which may be used: met, beyond `tmin`, and by the origin rule (a ray leaving sphere
-    k's surface meets k again only at its far side, pointing inward: b < 0)."""
+    k's surface meets k again only at its far side, pointing inward: b < 0).
+
+    From a point on the surface the far root is 2|b| for b < 0, so the origin's far
+    root is taken where −2b > `tmin`, decided on b rather than on −b + √disc: a ray
+    leaving tangent to its sphere (a grazing hit of the silhouette mode, a refraction
+    at the critical angle) has b and disc 0 but for rounding, and √disc would lift the
+    rounding (~1e-8 relative in float64) to the size of `tmin`, so that whether the ray
+    meets its own sphere again would differ between compiled programs."""
     disc = r**2 - l2
     meets = disc > 0
     sq = jnp.sqrt(jnp.maximum(disc, 0))
     near, far = -b - sq, -b + sq
     near_ok = meets & (near > tmin) & ~is_origin
-    far_ok = meets & (far > tmin) & (~is_origin | (b < 0))
+    far_ok = jnp.where(is_origin, -2 * b > tmin, meets & (far > tmin))
     return Roots(near_ok, far_ok, near, far)
 
 

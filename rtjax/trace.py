@@ -138,20 +138,32 @@ def hit_key(key, hit: spheres.Hit, visibility, live):
 
 #: Floor of √k's slope in Snell's law (k = 0: the critical angle), per dtype.
 TIR_SLOPE_FLOOR = {jnp.dtype(jnp.float32): 1e-8, jnp.dtype(jnp.float64): 1e-16}
+#: |k| below which Snell's k counts as 0 (exactly at the critical angle), per dtype: well
+#: above k's rounding, far below any k a ray not grazing its way in meets.
+CRITICAL_BAND = {jnp.dtype(jnp.float32): 1e-4, jnp.dtype(jnp.float64): 1e-10}
 
 
 def next_direction(s: Structure, p: Params, idx, d, n, entering):
-    """Mirror reflection, or for glass Snell's refraction (TIR: the reflection)."""
+    """Mirror reflection, or for glass Snell's refraction (TIR: the reflection).
+
+    A ray that enters a sphere leaves it at the angle it entered by, so k on the way
+    out is cos² of the entry angle: exactly 0 for the silhouette mode's grazing hits
+    (`spheres.nearest_hit`'s `force`), where rounding alone would choose between
+    refraction and TIR, differently in each compiled program (the image, its jvp, its
+    vjp), and √k's slope would amplify the rounding. Within `CRITICAL_BAND` of 0, k is
+    taken as 0: the ray refracts, tangent to the surface, and k carries no derivative
+    (it is identically 0 along a grazing hit)."""
     cos_i = -dot(d, n)
     reflected = d + 2 * cos_i * n
     if not s.has(GLASS):
         return reflected
     eta = jnp.where(entering, 1 / p.ior[idx], p.ior[idx])
     k = 1 - eta**2 * (1 - cos_i**2)
-    root = safe_sqrt(k, jnp.asarray(TIR_SLOPE_FLOOR[jnp.dtype(d.dtype)], d.dtype))
+    band = CRITICAL_BAND[jnp.dtype(d.dtype)]
+    root = safe_sqrt(jnp.where(k > band, k, 0), jnp.asarray(TIR_SLOPE_FLOOR[jnp.dtype(d.dtype)], d.dtype))
     refracted = eta * d + (eta * cos_i - root) * n
     glass = jnp.asarray(s.mask(GLASS))[idx]
-    return jnp.where(glass & (k > 0), refracted, reflected)
+    return jnp.where(glass & (k > -band), refracted, reflected)
 
 
 class Rays(NamedTuple):
@@ -248,11 +260,13 @@ def _chain(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: M
     first segment only; `watch` (the silhouette mode's `edges.EdgeWatch`) is folded over
     the segments. Returns the rays after the last segment and the fold (None without).
 
-    In plain mode the body is checkpointed: reverse mode keeps only the state entering
-    each segment and recomputes the segment's intermediates from it, so the gradient's
-    memory hardly grows with the depth (forward mode and the image are unaffected). Not
-    in box and sided modes, whose reverse mode through a checkpointed body disagrees
-    with their forward mode on the sample deck (tests/test_reverse.py).
+    The body is checkpointed: reverse mode keeps only the state entering each segment
+    and recomputes the segment's intermediates from it, so the gradient's memory hardly
+    grows with the depth (forward mode and the image are unaffected). The recomputation
+    is another compiled program than the forward pass, so its rounding differs: the
+    choices rounding alone used to settle (at the silhouette mode's grazing hits:
+    `next_direction`, `spheres.roots`, `edges.hit_motion`) are made on quantities
+    rounding does not flip, so both passes follow the same paths.
 
     Wavefront compaction: most rays end after a segment or two, but a scan over all of
     them pays for every ray at every segment. So the chain runs in `tiers`: a tier's
@@ -279,9 +293,7 @@ def _chain(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: M
     def tier(state, i):
         nxt = sizes[i + 1] if i + 1 < len(sizes) else 0
         step = functools.partial(body, nxt=nxt)
-        if mode == PLAIN:
-            step = jax.checkpoint(step, prevent_cse=False)
-        state, _ = jax.lax.scan(step, state, length=depth + 1)
+        state, _ = jax.lax.scan(jax.checkpoint(step, prevent_cse=False), state, length=depth + 1)
         if not nxt:
             return state
         # at most `nxt` rays are alive now (or none: every ray ended within the depth)

@@ -3,9 +3,11 @@ forward-mode derivatives and finite differences, in plain and silhouette-aware m
 on a scene whose paths pass through a mirror and a glass sphere (depth ≥ 2); and the
 compiled reverse gradient's memory does not grow with depth (XLA's memory analysis).
 
-The chain's segments are checkpointed (`rtjax.trace`), so reverse mode stores each
-segment's rays, not its intermediates; these tests pin that the numbers are those of
-plain autodiff (forward mode does not go through the checkpoint's recomputation).
+The chain's segments are checkpointed (`rtjax.trace`) in every mode, so reverse mode
+stores each segment's rays, not its intermediates; these tests pin that the numbers are
+those of plain autodiff (forward mode does not go through the checkpoint's
+recomputation). The silhouette-aware mode's check is on the sample deck (40 px), whose
+grazing hits on mirror and glass silhouettes the small scene here lacks.
 """
 
 from __future__ import annotations
@@ -54,7 +56,7 @@ def _inner(a: rtjax.Params, b: rtjax.Params) -> float:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("edges", [0.0, 1.0])
+@pytest.mark.parametrize("edges", [0.0])
 def test_reverse_equals_forward_through_mirror_and_glass(edges):
     """⟨Jᵀc, t⟩ = ⟨c, J t⟩ for a random cotangent c and random tangents t over all
     parameters (float64, rounding only), and every path the chain follows is exercised:
@@ -80,28 +82,31 @@ def test_reverse_equals_forward_through_mirror_and_glass(edges):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("edges", [0.0])
-def test_reverse_equals_forward_on_the_sample_deck(edges):
-    """The same dot-product test on the sample deck at 96 px, its own depth (10): two
-    mirrors and three glass spheres through the checkpointed plain chain. (With
-    edges=1.0 it is the check to run before checkpointing the silhouette mode's chain,
-    which disagreed here (docs/MEASUREMENTS.md); it compiles for about two minutes, so
-    the suite leaves it out while that chain is not checkpointed.)"""
+@pytest.mark.parametrize("edges, size", [(0.0, 96), (1.0, 40)])
+def test_reverse_equals_forward_on_the_sample_deck(edges, size):
+    """The same dot-product test on the sample deck, its own depth (10): two mirrors and
+    three glass spheres through the checkpointed chain. In the silhouette-aware mode
+    (40 px: every pixel traced in the mode) its grazing hits on the inside of mirror
+    and glass silhouettes once left the path to rounding (refraction or TIR exactly at
+    the critical angle, a tangent ray meeting its own sphere again, the side of a
+    grazing hit's motion), which differs between the compiled image, jvp and vjp: there
+    the two sides disagreed by 1e-3 to 1e-1 relative, with or without the checkpoint."""
     with open(os.path.join(SCENES, "ex2s3.dat")) as f:
-        s = rtjax.parse_deck(f.read()).frames[0].scene.resized(96).astype(jnp.float64)
+        s = rtjax.parse_deck(f.read()).frames[0].scene.resized(size).astype(jnp.float64)
     p = s.params
 
     def image(p):
         return rtjax.render(rtjax.Scene(s.structure, p), edges=edges)
 
     c = jax.random.normal(jax.random.key(7), (s.structure.height, s.structure.width, 3), jnp.float64)
-    pullback = jax.jit(lambda p: jax.vjp(image, p)[1](c)[0])(p)
-    push = jax.jit(lambda p, t: jax.jvp(image, (p,), (t,))[1])
-    for key in range(2):
-        t = _random_like(p, key)
-        forward = float(jnp.vdot(c, push(p, t)))
-        assert abs(forward) > 1
-        assert _inner(pullback, t) == pytest.approx(forward, rel=1e-9), key
+    with quick_xla(clear=True):  # the identity holds in either build; the compile is what costs
+        pullback = jax.jit(lambda p: jax.vjp(image, p)[1](c)[0])(p)
+        push = jax.jit(lambda p, t: jax.jvp(image, (p,), (t,))[1])
+        for key in range(3):
+            t = _random_like(p, key)
+            forward = float(jnp.vdot(c, push(p, t)))
+            assert abs(forward) > 1
+            assert _inner(pullback, t) == pytest.approx(forward, rel=1e-9), key
 
 
 @pytest.mark.slow
