@@ -29,9 +29,8 @@ added to the sandwich σ in quadrature ('bias_px'): the shift of the optimum, on
 Gauss–Newton step from the end, when only the `EDGE_SHARE` of pixels where the free
 centres' Jacobian is largest (silhouettes, shadow and reflection edges) keep their
 weight, the others 1e-3 of it: where the interior shading disagrees with the edges the
-two optima differ. Reported per sphere in scene units and in
-pixels (the pixel footprint at the sphere's distance from the eye is
-distance × 2·tan(ha/2)/width).
+two optima differ. Reported per sphere in scene units and in pixels (the pixel
+footprint at the sphere's distance from the eye is distance × 2·tan(ha/2)/width).
 """
 
 from __future__ import annotations
@@ -78,8 +77,9 @@ class Verdict:
       geometry with the fitted appearance ('start'), and of a flat image ('flat').
     - `spheres`: per free centre (`uncertainty`): index, kind, σ per axis, along the
       worst direction (scene units and pixels) and along the view (pixels), the
-      Gauss–Newton σ, the bias estimate and the σ the verdict uses (pixels), how far it moved (scene units and pixels), its footprint (scene
-      units per pixel) and goal (pixels).
+      Gauss–Newton σ, the bias estimate and the σ the verdict uses (pixels), how far it
+      moved (scene units and pixels), its footprint (scene units per pixel) and goal
+      (pixels).
     - `bounds`: the parameters that ended at a bound, with their values.
     """
 
@@ -184,8 +184,8 @@ def uncertainty(problem, state, y: dict) -> list[dict]:
     along the worst direction in scene units and pixels, 'sigma_units', 'sigma_px';
     along the view, 'sigma_depth_px') and from the Gauss–Newton one
     ('sigma_statistical_px'), the bias estimate ('bias_px', `EDGE_SHARE`) and σ with
-    it in quadrature ('sigma_total_px', what the verdict uses); the Jacobian and residuals come from a solver `state`
-    evaluated at `y`."""
+    it in quadrature ('sigma_total_px', what the verdict uses); the Jacobian and
+    residuals come from a solver `state` evaluated at `y`."""
     selection = problem.selection
     if "centers" not in selection.index:
         return []
