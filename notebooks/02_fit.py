@@ -371,12 +371,13 @@ print("verdict:", photo_fit.verdict.message)
 width = photo_target.shape[1]
 foot = footprints(photo_truth.params, PHOTO["width"])  # pixel footprints at the photo's own width
 true_c = np.asarray(photo_truth.params.centers)
-print(f"\n{'sphere':>6s} {'kind':>5s} {'start err':>9s} {'end err':>8s} {'σ':>7s}   (pixel footprints)")
+print(f"\n{'sphere':>6s} {'kind':>5s} {'start err':>9s} {'end err':>8s} {'σ':>7s} {'bias':>7s}   (pixel footprints)")
 for s in photo_fit.verdict.spheres:
     i = s["index"]
     e0 = np.linalg.norm(np.asarray(photo_start.params.centers)[i] - true_c[i]) / foot[i]
     e1 = np.linalg.norm(np.asarray(photo_fit.scene.params.centers)[i] - true_c[i]) / foot[i]
-    print(f"{i:6d} {s['kind']:>5s} {e0:9.2f} {e1:8.2f} {s['sigma_px'] * PHOTO['width'] / width:7.3f}")
+    scale = PHOTO["width"] / width  # the verdict's pixels are the fitted image's
+    print(f"{i:6d} {s['kind']:>5s} {e0:9.2f} {e1:8.2f} {s['sigma_px'] * scale:7.3f} {s['bias_px'] * scale:7.3f}")
 
 # %%
 # the photo model of the start at the target's size (as the fit made it), applied to the fitted scene
@@ -390,6 +391,9 @@ show([photo_target, photo_model, difference(photo_model, photo_target, gain=3)],
 # silhouettes and shadow outlines; depth (along the view) is the least determined
 # direction, seen only through each silhouette's size and perspective. The σ column
 # is the verdict's cluster-robust (sandwich) uncertainty over 16-pixel blocks, which
-# allows for residuals correlated within a block (blur, JPEG); the bias of shading the
-# model lacks is not in it. docs/FITTING.md has the whole photo set's table
-# (`scripts/eval_photos.py`).
+# allows for residuals correlated within a block (blur, JPEG); the bias column
+# estimates what shading the model lacks does to a centre (the shift of the optimum
+# when only the edge pixels keep their weight). The verdict takes 3·√(σ² + bias²)
+# against each sphere's goal: it errs on the side of failing, and may call a fit
+# undetermined whose centres are in fact within their goals. docs/FITTING.md has the
+# whole photo set's table (`scripts/eval_photos.py`).
