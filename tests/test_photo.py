@@ -117,36 +117,25 @@ def test_photo_fit_through_another_camera(tmp_path):
 
 @pytest.mark.slow
 def test_cli_photo_of_nothing_exits_1_naming_the_cause(tmp_path):
-    """A flat grey photo: no geometry explains it better than a flat image does; the
-    report says so and gives each sphere's uncertainty, and the command exits 1."""
-    truth = scene_from_text(truth_deck(64))
+    """A flat grey photo, fitted from two starts (`--starts 2`: `fit_multistart`, which
+    judges the start it keeps): no geometry explains it better than a flat image does;
+    the report says so and gives each sphere's uncertainty and its move from the deck's
+    centre to the kept start's fitted one, and the command exits 1."""
+    truth = scene_from_text(truth_deck(32))
     rtjax.save_deck(tmp_path / "start.dat", truth, "x.sunimg")
     rtjax.save_image(tmp_path / "grey.png", np.full((truth.structure.height, truth.structure.width, 3), 128.0))
     out = tmp_path / "out" / "fitted.dat"
     proc = subprocess.run([sys.executable, "-m", "rtjax", "fit", str(tmp_path / "start.dat"), str(tmp_path / "grey.png"),
-                           "--photo", "--max-steps", "8", "-o", str(out)], capture_output=True, text=True, cwd=ROOT,
-                          timeout=600)
+                           "--photo", "--starts", "2", "--seed", "1", "--max-steps", "4", "-o", str(out)],
+                          capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert proc.returncode == 1, proc.stdout + proc.stderr
     assert "verdict: FAILED" in proc.stdout and "Traceback" not in proc.stderr
     report = json.loads((tmp_path / "out" / "fitted.json").read_text())
     verdict = report["verdict"]
     assert not verdict["ok"] and verdict["causes"]
-    assert any(c.startswith(("no better than a flat image", "ran away", "undetermined")) for c in verdict["causes"])
+    assert any(c.startswith("no better than a flat image") for c in verdict["causes"]), verdict["causes"]
     assert [s["index"] for s in verdict["spheres"]] == [0, 1]
-
-
-@pytest.mark.slow
-def test_multistart_photo_fit_is_judged_on_its_best_start():
-    """`fit_multistart(..., photo=True)` judges the start it keeps: a flat grey photo is
-    explained better by a flat image, the verdict says so, and its spheres' moves are
-    those of the kept start's centres from the deck's."""
-    truth = scene_from_text(truth_deck(32))
-    grey = np.full((truth.structure.height, truth.structure.width, 3), 128.0)
-    res = fitting.fit_multistart(truth, grey, "centers", starts=2, seed=1, photo=True, max_steps=4)
-    v = res.best.verdict
-    assert v is not None and not v.ok
-    assert any(c.startswith("no better than a flat image") for c in v.causes), v.message
-    moved_by = np.linalg.norm(np.asarray(res.best.scene.params.centers, np.float64)
+    fitted = rtjax.load_deck(out).frames[0].scene
+    moved_by = np.linalg.norm(np.asarray(fitted.params.centers, np.float64)
                               - np.asarray(truth.params.centers, np.float64), axis=1)
-    assert [s["index"] for s in v.spheres] == [0, 1]
-    np.testing.assert_allclose([s["moved_units"] for s in v.spheres], moved_by, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose([s["moved_units"] for s in verdict["spheres"]], moved_by, rtol=1e-4, atol=1e-5)
