@@ -55,6 +55,20 @@ def _inner(a: rtjax.Params, b: rtjax.Params) -> float:
     return float(sum(jnp.vdot(x, y) for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b))))
 
 
+def assert_dot_products(image, p, structure, least: float):
+    """⟨Jᵀc, t⟩ = ⟨c, J t⟩ to rounding (float64) for a random cotangent c and three random
+    tangents t over all parameters of `image(p)`, each ⟨c, J t⟩ at least `least` in size."""
+    c = jax.random.normal(jax.random.key(7), (structure.height, structure.width, 3), jnp.float64)
+    with quick_xla(clear=True):  # the identity holds in either build; the compile is what costs
+        pullback = jax.jit(lambda p: jax.vjp(image, p)[1](c)[0])(p)
+        push = jax.jit(lambda p, t: jax.jvp(image, (p,), (t,))[1])
+        for key in range(3):
+            t = _random_like(p, key)
+            forward = float(jnp.vdot(c, push(p, t)))
+            assert abs(forward) > least
+            assert _inner(pullback, t) == pytest.approx(forward, rel=1e-9), key
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("edges", [0.0])
 def test_reverse_equals_forward_through_mirror_and_glass(edges):
@@ -69,16 +83,7 @@ def test_reverse_equals_forward_through_mirror_and_glass(edges):
 
     shallow = np.asarray(rtjax.render(s, depth=1, edges=edges))
     assert np.abs(np.asarray(image(p)) - shallow).max() > 1, "the scene has no path of depth ≥ 2"
-    c = jax.random.normal(jax.random.key(7), (s.structure.height, s.structure.width, 3), jnp.float64)
-    with quick_xla(clear=True):  # the identity holds in either build; the compile is what costs
-        pullback = jax.jit(lambda p: jax.vjp(image, p)[1](c)[0])(p)
-        push = jax.jit(lambda p, t: jax.jvp(image, (p,), (t,))[1])
-        for key in range(3):
-            t = _random_like(p, key)
-            forward = float(jnp.vdot(c, push(p, t)))
-            reverse = _inner(pullback, t)
-            assert abs(forward) > 1e-3
-            assert reverse == pytest.approx(forward, rel=1e-9), key
+    assert_dot_products(image, p, s.structure, least=1e-3)
 
 
 @pytest.mark.slow
@@ -98,15 +103,7 @@ def test_reverse_equals_forward_on_the_sample_deck(edges, size):
     def image(p):
         return rtjax.render(rtjax.Scene(s.structure, p), edges=edges)
 
-    c = jax.random.normal(jax.random.key(7), (s.structure.height, s.structure.width, 3), jnp.float64)
-    with quick_xla(clear=True):  # the identity holds in either build; the compile is what costs
-        pullback = jax.jit(lambda p: jax.vjp(image, p)[1](c)[0])(p)
-        push = jax.jit(lambda p, t: jax.jvp(image, (p,), (t,))[1])
-        for key in range(3):
-            t = _random_like(p, key)
-            forward = float(jnp.vdot(c, push(p, t)))
-            assert abs(forward) > 1
-            assert _inner(pullback, t) == pytest.approx(forward, rel=1e-9), key
+    assert_dot_products(image, p, s.structure, least=1.0)
 
 
 @pytest.mark.slow
