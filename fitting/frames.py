@@ -35,6 +35,11 @@ class FrameSamples(NamedTuple):
         return self.frames[0].scale
 
     @property
+    def whole(self) -> bool:
+        """Whether a frame's model renders its whole full-size image (a photo's level)."""
+        return any(s.whole for s in self.frames)
+
+    @property
     def target(self):
         """Every frame's target samples end to end."""
         return jnp.concatenate([s.target for s in self.frames])

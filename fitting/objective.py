@@ -358,8 +358,7 @@ class Objective:
             return rtjax.render_samples(scene, xy, step=samples.step, depth=self.depth, edges=edges)
 
         if samples.plain:
-            return apply_nuisance(rtjax.render_samples(scene, samples.xy, step=samples.step, depth=self.depth), nuisance,
-                                  logs=True)
+            return apply_nuisance(render(samples.xy, edges=0.0), nuisance, logs=True)
         if samples.whole:
             image = camera(rtjax.render(scene, depth=self.depth, edges=1.0), nuisance, logs=True)
             i, j = (jnp.floor(samples.xy[:, a]).astype(jnp.int32) for a in (0, 1))

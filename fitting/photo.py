@@ -106,9 +106,9 @@ CAMERA = ("gain", "field", "blur", "gamma", "chroma")
 #: Start values of the camera's parameters: no change but a slight blur (a lens, a
 #: renderer's pixel filter) and JPEG's usual chroma blur.
 CAMERA_START = {"blur": 0.7, "gamma": 1.0, "chroma": 0.5}
-#: Colours (albedo, background) start at the deck's, at least this far inside their
-#: range: at an end the logistic's slope would hold them there.
-COLOUR_MARGIN = 0.02
+#: Colours (albedo, background), ke and kt start at the deck's, at least this far inside
+#: their [0, 1] range: at an end the logistic's slope would hold them there.
+START_MARGIN = 0.02
 #: The smooth illumination field's terms, in the image's coordinates u, v ∈ [−1, 1].
 FIELD_TERMS = 5
 
@@ -141,11 +141,11 @@ class Photo:
         self.glass = np.flatnonzero(s.mask("trpa"))
         self.rounded = np.flatnonzero(radii <= FLOOR_RATIO * np.median(radii)) if len(radii) else np.zeros(0, int)
         start = {
-            "albedo": np.clip(np.asarray(p.diffuse, np.float64)[self.opaque].reshape(-1, 3), COLOUR_MARGIN, 1 - COLOUR_MARGIN),
-            "background": np.clip(np.asarray(p.background, np.float64) / 255, COLOUR_MARGIN, 1 - COLOUR_MARGIN),
+            "albedo": np.clip(np.asarray(p.diffuse, np.float64)[self.opaque].reshape(-1, 3), START_MARGIN, 1 - START_MARGIN),
+            "background": np.clip(np.asarray(p.background, np.float64) / 255, START_MARGIN, 1 - START_MARGIN),
             "lights": np.ones((max(s.n_lights - 1, 0), 3)),
-            "ke": np.clip(float(p.ke), 0.02, 0.9),
-            "kt": np.clip(np.asarray(p.kt, np.float64)[self.glass], 0.02, 0.98),
+            "ke": np.clip(float(p.ke), START_MARGIN, 0.9),
+            "kt": np.clip(np.asarray(p.kt, np.float64)[self.glass], START_MARGIN, 1 - START_MARGIN),
             "dilate": 0.0,
             "gain": np.ones(3),
             "field": np.zeros(FIELD_TERMS),

@@ -201,7 +201,7 @@ class Single:
         self.ahead = ahead  # compiling the whole-image level's step (`Stepper.compile_ahead`)
 
     def init(self, y, samples):
-        if self.ahead is not None and getattr(samples, "whole", False):
+        if self.ahead is not None and samples.whole:
             self.ahead.join()  # its step compiled once, not again beside it
         return self.stepper.init(y, samples)
 
@@ -349,7 +349,7 @@ def fit(scene: rtjax.Scene | Sequence[rtjax.Scene], target, free: str | Sequence
         problem = dataclasses.replace(problem, objective=Smoothed(problem.objective, problem.selection, options.smooth))
     stepper = Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac)
     pyramid = problem.pyramid
-    ahead = stepper.compile_ahead(problem.y0, pyramid[-1]) if len(pyramid) > 1 and getattr(pyramid[-1], "whole", False) else None
+    ahead = stepper.compile_ahead(problem.y0, pyramid[-1]) if len(pyramid) > 1 and pyramid[-1].whole else None
     result = fit_starts(problem, Single(stepper, ahead), problem.y0, [problem.scene], options, callback,
                         started=started).best
     if ahead is not None:

@@ -28,8 +28,8 @@ pulls every block the same way (depth along the view, mostly). A bias estimate i
 added to the sandwich σ in quadrature ('bias_px'): the shift of the optimum, one
 Gauss–Newton step from the end, when only the `EDGE_SHARE` of pixels where the free
 centres' Jacobian is largest (silhouettes, shadow and reflection edges) keep their
-weight, the others 1e-3 of it: where the interior shading disagrees with the edges the
-two optima differ. Reported per sphere in scene units and in pixels (the pixel
+weight, the others `OTHER_WEIGHT` of it: where the interior shading disagrees with the
+edges the two optima differ. Reported per sphere in scene units and in pixels (the pixel
 footprint at the sphere's distance from the eye is distance × 2·tan(ha/2)/width).
 """
 
@@ -55,6 +55,8 @@ CLUSTER = 16
 #: The share of pixels, those with the largest Jacobian of the free centres, that keep
 #: their weight in the bias estimate (`uncertainty`).
 EDGE_SHARE = 0.2
+#: The weight of the other pixels in the bias estimate.
+OTHER_WEIGHT = 1e-3
 #: A centre is determined when this many of its σ (the cluster-robust one along its
 #: worst direction, with the bias estimate in quadrature) are within its goal (`LIMITS`).
 CONFIDENCE = 3.0
@@ -211,7 +213,7 @@ def uncertainty(problem, state, y: dict) -> list[dict]:
     robust_cov = inverse @ (sums.T @ sums) @ inverse
     # the bias estimate: the Gauss-Newton shift of the optimum with the edge pixels alone weighted
     per_pixel = np.abs(jac[:, columns.ravel()]).reshape(len(block), -1).sum(1)
-    edge = np.repeat(np.where(per_pixel > np.quantile(per_pixel, 1 - EDGE_SHARE), 1.0, 1e-3), m // len(block))
+    edge = np.repeat(np.where(per_pixel > np.quantile(per_pixel, 1 - EDGE_SHARE), 1.0, OTHER_WEIGHT), m // len(block))
     weighted = jac.T @ (jac * edge[:, None])
     shift = -np.linalg.solve(weighted + ridge * np.eye(n), jac.T @ (edge * r))
     unit = selection.transform["centers"].scale  # scene units per solver unit (an affine family)
