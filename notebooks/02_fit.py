@@ -344,7 +344,7 @@ show(errors + [255 * (1 - tex_all.texels.seen(0))], ["|texel error| ×4, frame 0
 # flat image or the start geometry, or a centre its own uncertainty does not pin,
 # makes it a failure. Errors are in pixel footprints at each sphere's distance (the
 # goal: opaque and mirror spheres within 1, glass within 3). The quick mode fits a
-# half-size copy of the photo with a few iterations.
+# quarter-size copy of the photo with a few iterations.
 
 # %%
 import json
@@ -359,12 +359,12 @@ assert PHOTO["split"] == "tune"
 photo_start = rtjax.load_deck(PHOTOS / PHOTO["start"]).frames[0].scene
 photo_truth = rtjax.load_deck(PHOTOS / PHOTO["truth"]).frames[0].scene
 photo_target = fitting.load_target(str(PHOTOS / PHOTO["file"]))
-if QUICK:  # half size: the scene follows the target's width
-    w = photo_target.shape[1] // 2
+if QUICK:  # quarter size: the scene follows the target's width
+    w = photo_target.shape[1] // 4
     photo_target = downsample(photo_target, rtjax.image_height(w, *map(float, np.asarray(photo_start.params.vang))), w)
 t0 = time.perf_counter()
 photo_fit = fitting.fit(photo_start, photo_target, "centers", spheres=PHOTO["free"], photo=True,
-                        max_steps=8 if QUICK else 30)
+                        max_steps=4 if QUICK else 30)
 print(f"{photo_fit.steps} iterations, {time.perf_counter() - t0:.1f} s, {photo_fit.result}; exit {0 if photo_fit.ok else 1}")
 print("verdict:", photo_fit.verdict.message)
 

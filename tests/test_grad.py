@@ -28,7 +28,7 @@ import pytest
 
 import rtjax
 
-from conftest import SCENES
+from conftest import SCENES, quick_xla
 
 FAMILIES = ("centers", "radii", "diffuse", "ks", "beta", "kt", "ior", "light_dirs", "light_colors", "background", "ke", "eye", "refp", "vang")
 
@@ -182,15 +182,24 @@ def test_derivative_matches_central_differences(name, family):
         assert not f_cols.any() and not r_cols.any(), "an entry that the sphere's kind ignores has a derivative"
 
 
+@functools.partial(jax.jit, static_argnames="edges")
+def _render(scene, edges):
+    """`rtjax.render` in a jitted function of this file's own, so that `quick_xla`'s build
+    is cached for it alone."""
+    return rtjax.render(scene, edges=edges)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("edges", [0.0, 1.0])
 def test_float32_agrees_with_float64_on_the_sample_deck(edges):
     """The sample deck at 96 × 71: ≥ 99.5 % of pixels within half a level (per channel's
-    worst), plain and silhouette-aware."""
+    worst), plain and silhouette-aware. A check of a tolerance: compiled with
+    `conftest.quick_xla`."""
     with open(os.path.join(SCENES, "ex2s3.dat")) as f:
         deck = rtjax.parse_deck(f.read()).frames[0].scene.resized(96)
-    single = np.asarray(rtjax.render(deck, edges=edges))
-    double = np.asarray(rtjax.render(deck.astype(jnp.float64), edges=edges))
+    with quick_xla():
+        single = np.asarray(_render(deck, edges))
+        double = np.asarray(_render(deck.astype(jnp.float64), edges))
     assert single.dtype == np.float32 and double.dtype == np.float64
     off = np.abs(single - double).max(axis=-1)
     assert np.mean(off < 0.5) >= 0.995, f"{np.mean(off < 0.5):.4f} of pixels within 0.5 levels"
