@@ -294,6 +294,11 @@ def edge_pixels(keys: Int[Array, "h+2r w+2r"], reach: int) -> Bool[Array, "h w"]
     return lo != hi
 
 
+#: A straight edge crosses a square box only within √½ of its side from the centre
+#: (its half-diagonal); farther, the box lies on one side (α is 0 or 1).
+CROSSING = 0.5**0.5
+
+
 class Best(NamedTuple):
     """The nearest visible silhouette found so far along each pixel's chain."""
 
@@ -326,8 +331,8 @@ class EdgeWatch:
         return Best(jnp.full(n, jnp.inf, rays.o.dtype), none, jnp.zeros(n, bool), rays, none, shadowed)
 
     def shadowed(self, rays, hit: spheres.Hit) -> Bool[Array, " p"]:
-        """Whether any light's shadow edge lies within reach of this segment's hits, on
-        the segments past the first."""
+        """Whether any light's shadow edge may cross the box of this segment's hits
+        (within `CROSSING` boxes), on the segments past the first."""
         sg = jax.lax.stop_gradient
         hit = sg(hit)
         motion = hit_motion(hit, rays.o, rays.d, sg(rays.diff))
@@ -336,7 +341,7 @@ class EdgeWatch:
             tab = spheres.light_table(hit.point, light, self.centers)
             edge, delta, _, _ = shadow_edge(hit, light, sg(self.centers), sg(self.radii), self.tmin, motion,
                                             self.width, tab)
-            near = near | ((edge >= 0) & (jnp.abs(delta) < self.width))
+            near = near | ((edge >= 0) & (jnp.abs(delta) < CROSSING * self.width))
         return near & hit.found & (rays.weight > 0) & (rays.level > 0)
 
     def __call__(self, rays, hit: spheres.Hit, best: Best) -> Best:

@@ -394,7 +394,7 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
     else:
         flipped, shadow_x = centre, jnp.full((n,), jnp.inf, centre.dtype)
         if split:
-            chosen = pack(split_pixels(s, best), packed.index.shape[0])
+            chosen = pack(split_pixels(s, best, width), packed.index.shape[0])
             blended = chosen.scatter(blended, split_boxes(s, p, chosen.gather((o, d, diff)), chosen.count, depth, width))
     return edges.EdgeSamples(centre=centre, blended=blended,
                              inside=packed.scatter(centre, inside), outside=packed.scatter(centre, outside),
@@ -403,19 +403,22 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
                              shadow_x=shadow_x)
 
 
-def split_pixels(s: Structure, best: edges.Best):
-    """Which pixels `trace_edges` splits into sub-boxes: those whose nearest silhouette
+def split_pixels(s: Structure, best: edges.Best, width):
+    """Which pixels `trace_edges` splits into sub-boxes: those whose box (`width` sample
+    steps) the nearest silhouette may cross (within `edges.CROSSING` boxes) where it
     lies past a mirror or glass hit (on a segment after the first) or is a mirror's or
     a glass sphere's own outline or intersection curve, and those with a shadow edge
-    within reach past a mirror or glass hit (`Best.shadowed`)."""
+    that may cross it past a mirror or glass hit (`Best.shadowed`)."""
     kind = jnp.asarray(s.mask(MIRROR, GLASS))
     own = kind[jnp.maximum(best.edge, 0)] | ((best.partner >= 0) & kind[jnp.maximum(best.partner, 0)])
-    return ((best.edge >= 0) & ((best.rays.level > 0) | own)) | best.shadowed
+    crossed = (best.edge >= 0) & (best.score < edges.CROSSING * width)
+    return (crossed & ((best.rays.level > 0) | own)) | best.shadowed
 
 
 #: `split_boxes` traces the sub-boxes of at most this many pixels together, skipping
 #: groups past the last split pixel at run time.
-SPLIT_GROUP = 256
+SPLIT_GROUP = 1024
+SPLIT_SIDES = 1
 
 
 def split_boxes(s: Structure, p: Params, primary, count, depth: int, width) -> Float[Array, "3 k"]:
@@ -437,7 +440,7 @@ def split_boxes(s: Structure, p: Params, primary, count, depth: int, width) -> F
     group = 4 * min(k, SPLIT_GROUP)
 
     def run(o, d, diff):
-        return trace_edges(s, p, o, d, diff, depth, width, BOX, group, split=False).blended
+        return trace_edges(s, p, o, d, diff, depth, width, BOX, group // SPLIT_SIDES, split=False).blended
 
     colour = tiled(run, group, so, sd, sdiff, count=4 * jnp.minimum(count, k))
     return colour.reshape(3, k, 4).mean(axis=-1)

@@ -10,13 +10,15 @@ from __future__ import annotations
 
 import argparse
 import functools
+import importlib
 import statistics
 import time
 
 import jax
 
 import rtjax
-from rtjax import render as render_module
+
+render_module = importlib.import_module("rtjax.render")  # the module (rtjax.render is the function)
 
 rtjax.tune_cpu()  # before any JAX computation (rtjax.xla)
 
