@@ -418,7 +418,6 @@ def split_pixels(s: Structure, best: edges.Best, width):
 #: `split_boxes` traces the sub-boxes of at most this many pixels together, skipping
 #: groups past the last split pixel at run time.
 SPLIT_GROUP = 1024
-SPLIT_SIDES = 1
 
 
 def split_boxes(s: Structure, p: Params, primary, count, depth: int, width) -> Float[Array, "3 k"]:
@@ -440,7 +439,7 @@ def split_boxes(s: Structure, p: Params, primary, count, depth: int, width) -> F
     group = 4 * min(k, SPLIT_GROUP)
 
     def run(o, d, diff):
-        return trace_edges(s, p, o, d, diff, depth, width, BOX, group // SPLIT_SIDES, split=False).blended
+        return trace_edges(s, p, o, d, diff, depth, width, BOX, group, split=False).blended
 
     colour = tiled(run, group, so, sd, sdiff, count=4 * jnp.minimum(count, k))
     return colour.reshape(3, k, 4).mean(axis=-1)
