@@ -263,6 +263,7 @@ def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, motion: M
     within reach): what a target sampled at pixel centres needs (`rtjax.edge_samples`).
     """
     ray = jnp.broadcast_to(light[:, None], hit.point.shape)
+    sg = jax.lax.stop_gradient
     tab = spheres.light_table(hit.point, light, centers)
     edge, delta_e, nx, ny = shadow_edge(hit, light, centers, radii, tmin, motion, width, tab)
     hard = spheres.transmission(hit.point, ray, centers, radii, hit.index, tmin, factor, skip=edge, tab=tab)

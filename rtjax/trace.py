@@ -339,7 +339,7 @@ def edge_capacity(n: int) -> int:
 
 
 def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth: int, width, mode: Mode,
-                capacity: int | None = None, split: bool = True) -> edges.EdgeSamples:
+                capacity: int | None = None, split: bool = False) -> edges.EdgeSamples:
     """The silhouette-aware trace of each pixel (box or sided `mode`), colours clamped.
 
     Pass 1 traces the chain with ray differentials and shadow edges, and finds the one
@@ -439,7 +439,7 @@ def split_boxes(s: Structure, p: Params, primary, count, depth: int, width) -> F
     group = 4 * min(k, SPLIT_GROUP)
 
     def run(o, d, diff):
-        return trace_edges(s, p, o, d, diff, depth, width, BOX, group, split=False).blended
+        return trace_edges(s, p, o, d, diff, depth, width, BOX, group).blended
 
     colour = tiled(run, group, so, sd, sdiff, count=4 * jnp.minimum(count, k))
     return colour.reshape(3, k, 4).mean(axis=-1)
