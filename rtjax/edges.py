@@ -232,6 +232,23 @@ class Shadow(NamedTuple):
     x: Float[Array, " p"]  # sided mode: the centre's distance to that edge in box widths (inf: none)
 
 
+def shadow_edge(hit: spheres.Hit, light, centers, radii, tmin, motion: Motion, width, tab: spheres.Table):
+    """One light's nearest shadow edge within `width` sample steps of each hit: the
+    occluder (or −1), the signed distance δ to its shadow cylinder in sample steps and
+    the edge's normal in the image (`soft_shadow`); `tab`: the hits' `light_table`."""
+    n = centers.shape[0]
+    ray = jnp.broadcast_to(light[:, None], hit.point.shape)
+    still = jnp.zeros_like(ray)  # a parallel light: the shadow ray's direction does not move
+    sg = jax.lax.stop_gradient
+    reach = safe_sqrt(sg(dot(motion.x, motion.x) + dot(motion.y, motion.y)), jnp.asarray(tiny(ray.dtype), ray.dtype))
+    own = hit.index[None, :] == jnp.arange(n)[:, None]
+    ahead = (-tab.b > tmin) & ~own & hit.found[None, :]
+    edge = _candidates(jnp.sqrt(tab.l2) - sg(radii)[:, None], reach, ahead, width)
+    c, r = _chosen_or_regular(edge, hit.point, ray, centers, radii)
+    delta_e, nx, ny, _, _ = edge_terms(hit.point, ray, motion.x, still, motion.y, still, c, r)
+    return edge, delta_e, nx, ny
+
+
 def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, motion: Motion, width, sided: bool) -> Shadow:
     """Visibility of one light at each hit, its nearest shadow edge box-filtered.
 
@@ -245,18 +262,11 @@ def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, motion: M
     centre's distance to the edge in box widths (differentiable; inf where no edge is
     within reach): what a target sampled at pixel centres needs (`rtjax.edge_samples`).
     """
-    n = centers.shape[0]
     ray = jnp.broadcast_to(light[:, None], hit.point.shape)
-    still = jnp.zeros_like(ray)  # a parallel light: the shadow ray's direction does not move
-    tab = spheres.light_table(hit.point, light, centers)
     sg = jax.lax.stop_gradient
-    reach = safe_sqrt(sg(dot(motion.x, motion.x) + dot(motion.y, motion.y)), jnp.asarray(tiny(ray.dtype), ray.dtype))
-    own = hit.index[None, :] == jnp.arange(n)[:, None]
-    ahead = (-tab.b > tmin) & ~own & hit.found[None, :]
-    edge = _candidates(jnp.sqrt(tab.l2) - sg(radii)[:, None], reach, ahead, width)
+    tab = spheres.light_table(hit.point, light, centers)
+    edge, delta_e, nx, ny = shadow_edge(hit, light, centers, radii, tmin, motion, width, tab)
     hard = spheres.transmission(hit.point, ray, centers, radii, hit.index, tmin, factor, skip=edge, tab=tab)
-    c, r = _chosen_or_regular(edge, hit.point, ray, centers, radii)
-    delta_e, nx, ny, _, _ = edge_terms(hit.point, ray, motion.x, still, motion.y, still, c, r)
     # |δ| ≥ width (a candidate only by the bound): α is 0 or 1, the hard factor exactly
     blocked = 1 - factor[jnp.maximum(edge, 0)]
     if sided:
@@ -285,6 +295,11 @@ def edge_pixels(keys: Int[Array, "h+2r w+2r"], reach: int) -> Bool[Array, "h w"]
     return lo != hi
 
 
+#: A straight edge crosses a square box only within √½ of its side from the centre
+#: (its half-diagonal); farther, the box lies on one side (α is 0 or 1).
+CROSSING = 0.5**0.5
+
+
 class Best(NamedTuple):
     """The nearest visible silhouette found so far along each pixel's chain."""
 
@@ -293,6 +308,7 @@ class Best(NamedTuple):
     on_hit: Bool[Array, " p"]  # the ray met that sphere (else it passed beside it)
     rays: object  # the chain's rays at that segment (`trace.Rays`, with their differentials), before it
     partner: Int[Array, " p"]  # an intersection curve: the sphere H the edge's sphere cuts into (else −1)
+    shadowed: "Bool[Array, ' p'] | None" = None  # watched `lights`: a shadow edge within reach past a mirror or glass
 
 
 class EdgeWatch:
@@ -300,16 +316,34 @@ class EdgeWatch:
     to its ray. Visible: the segment's ray meets that sphere first, from outside; or it
     misses it and passes closest to it in front of whatever it meets. `curves`: also
     the intersection curves of spheres cutting into the one a ray meets
-    (`curves.nearest_curve`), where they are nearer."""
+    (`curves.nearest_curve`), where they are nearer. `lights` (unit vectors): also
+    whether a shadow edge lies within reach of a hit past the first segment (seen in a
+    mirror or through glass; `Best.shadowed`)."""
 
-    def __init__(self, centers, radii, tmin, width: float, curves: bool = False):
+    def __init__(self, centers, radii, tmin, width: float, curves: bool = False, lights=None):
         self.centers, self.radii, self.tmin, self.width, self.curves = centers, radii, tmin, width, curves
+        self.lights = lights
 
     def empty(self, rays) -> Best:
         """No edge found yet (the fold's start)."""
         n = rays.weight.shape
         none = jnp.full(n, -1, jnp.int32)
-        return Best(jnp.full(n, jnp.inf, rays.o.dtype), none, jnp.zeros(n, bool), rays, none)
+        shadowed = None if self.lights is None else jnp.zeros(n, bool)
+        return Best(jnp.full(n, jnp.inf, rays.o.dtype), none, jnp.zeros(n, bool), rays, none, shadowed)
+
+    def shadowed(self, rays, hit: spheres.Hit) -> Bool[Array, " p"]:
+        """Whether any light's shadow edge may cross the box of this segment's hits
+        (within `CROSSING` boxes), on the segments past the first."""
+        sg = jax.lax.stop_gradient
+        hit = sg(hit)
+        motion = hit_motion(hit, rays.o, rays.d, sg(rays.diff))
+        near = jnp.zeros(hit.found.shape, bool)
+        for light in sg(self.lights):
+            tab = spheres.light_table(hit.point, light, self.centers)
+            edge, delta, _, _ = shadow_edge(hit, light, sg(self.centers), sg(self.radii), self.tmin, motion,
+                                            self.width, tab)
+            near = near | ((edge >= 0) & (jnp.abs(delta) < CROSSING * self.width))
+        return near & hit.found & (rays.weight > 0) & (rays.level > 0)
 
     def __call__(self, rays, hit: spheres.Hit, best: Best) -> Best:
         """`best` with this segment's nearest visible silhouette where it is nearer."""
@@ -349,7 +383,11 @@ class EdgeWatch:
             here = Best(jnp.where(nearer, cscore, score), jnp.where(nearer, cedge, edge), here.on_hit & ~nearer, rays,
                         jnp.where(nearer, hit.index, -1))
         better = here.score < best.score
-        return jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), here, best)
+        chosen = jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), here._replace(shadowed=None),
+                                        best._replace(shadowed=None))
+        if self.lights is None:
+            return chosen
+        return chosen._replace(shadowed=best.shadowed | self.shadowed(rays, hit))
 
 
 class Sides(NamedTuple):

@@ -32,6 +32,7 @@ class Options:
     dtype: jnp.dtype  # float32 or float64
     edges: float  # the silhouette-aware mode's edge width in pixels (0: pixel centres)
     tile: int  # rays traced together
+    split: bool = False  # the silhouette mode: 2 × 2 sub-boxes in pixels whose edge lies in or at a mirror or glass
 
 
 def resolve_dtype(scene: Scene, dtype) -> jnp.dtype:
@@ -91,6 +92,7 @@ def render(
     dtype=None,
     edges: float = 0.0,
     tile: int | None = None,
+    split: bool = False,
 ) -> Float[Array, "h w 3"]:
     """Render `scene` to an (H, W, 3) image in 0..255, clamped, not rounded.
 
@@ -103,12 +105,17 @@ def render(
       `edges` pixels (1 = the pixel's own box), so the image is antialiased at edges and
       its derivative includes their motion (see `rtjax.edges`). 0 (default) renders
       pixel centres. The mode is spent where edges are (`image_edges`).
+    split: with `edges`, the pixels whose edge is seen in a mirror or through glass (or
+      is a mirror's or glass sphere's outline, or a shadow edge seen past one) are
+      box-filtered as the mean of 2 × 2 sub-boxes, each with its own nearest edge
+      (`trace.split_boxes`): derivatives far closer to the truth inside mirrors and
+      glass, at about twice the mode's cost (docs/EDGES.md).
     tile: rays traced together (default: 2¹⁷ on a CPU, 2²⁰ on an accelerator); the
       image does not depend on it, only speed and memory do.
 
     Differentiable in `scene.params` with jax.grad / jax.jacfwd / jax.jvp.
     """
-    options = resolve_options(scene, depth, spp, dtype, edges, tile)
+    options = dataclasses.replace(resolve_options(scene, depth, spp, dtype, edges, tile), split=bool(split))
     return _render(scene.params.astype(options.dtype), scene.structure, options)
 
 
@@ -137,10 +144,11 @@ def render_image(s: Structure, p: Params, options: Options) -> Float[Array, "h w
         mode = BOX if options.edges else PLAIN
         xy = pixel_grid(s.width, s.height, offset)
         if not s.culls:
-            return colours_at(s, p, xy, step, options.depth, options.tile, mode, options.edges)
+            return colours_at(s, p, xy, step, options.depth, options.tile, mode, options.edges, split=options.split)
         # culled scenes test spheres per group of consecutive rays: trace 8×8 blocks together
         order, inverse = coherent_order(s.width, s.height)
-        return colours_at(s, p, xy[:, order], step, options.depth, options.tile, mode, options.edges)[:, inverse]
+        return colours_at(s, p, xy[:, order], step, options.depth, options.tile, mode, options.edges,
+                          split=options.split)[:, inverse]
 
     image = supersample(sample, options.spp, (3, s.height * s.width), p.eye.dtype)
     return image.reshape(3, s.height, s.width).transpose(1, 2, 0)
@@ -187,7 +195,7 @@ def image_edges(s: Structure, p: Params, offset, step, options: Options, reach: 
         packed = packed.renumbered(jnp.asarray(order))
     chunk = min(options.tile, max(EDGE_CHUNK_MIN, -(-n // EDGE_CHUNKS)))
     blended = colours_at(s, p, packed.gather(xy), step, options.depth, chunk, BOX, options.edges, capacity=chunk,
-                         count=packed.count)
+                         count=packed.count, split=options.split)
     return packed.scatter(jnp.clip(colour, 0, 255), blended)
 
 
@@ -207,18 +215,19 @@ def _differentials(s: Structure, p: Params, xy, step):
 
 
 def colours_at(s: Structure, p: Params, xy, step, depth: int, tile: int, mode: Mode, width=0.0,
-               capacity: int | None = None, count=None) -> Float[Array, "3 k"]:
+               capacity: int | None = None, count=None, split: bool = False) -> Float[Array, "3 k"]:
     """Clamped colours (3, K) seen through image positions xy (2, K) (pixels of the
     scene's image): at their centres (`PLAIN`) or box-filtered at edges (`BOX`), the
     box `width`·`step` pixels wide (`step`: the samples' spacing in pixels).
     `capacity`: the edge pixels pass 2 takes per `tile` (`trace.trace_edges`); `count`
-    (traced): only the first `count` positions are wanted (`trace.tiled`)."""
+    (traced): only the first `count` positions are wanted (`trace.tiled`); `split`: the
+    box mode's 2 × 2 split (`trace.trace_edges`)."""
     if mode == PLAIN:
         o, d = rays_through(p.eye, p.refp, p.vang, s.width, s.height, xy)
         return jnp.clip(tiled(lambda o, d: trace(s, p, o, d, depth).colour, tile, o, d), 0, 255)
 
     def run(o, d, diff):
-        return trace_edges(s, p, o, d, diff, depth, width, BOX, capacity).blended
+        return trace_edges(s, p, o, d, diff, depth, width, BOX, capacity, split).blended
 
     return tiled(run, tile, *_differentials(s, p, xy, step), count=count)
 

@@ -339,7 +339,7 @@ def edge_capacity(n: int) -> int:
 
 
 def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth: int, width, mode: Mode,
-                capacity: int | None = None) -> edges.EdgeSamples:
+                capacity: int | None = None, split: bool = False) -> edges.EdgeSamples:
     """The silhouette-aware trace of each pixel (box or sided `mode`), colours clamped.
 
     Pass 1 traces the chain with ray differentials and shadow edges, and finds the one
@@ -350,9 +350,16 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
     of the pixel's box in box mode, whose blend (`EdgeSamples.blended`) is the pixel's
     box-filtered colour; just across the edge where it passes nearest to the centre in
     sided mode. Its cost follows the edges' length, not the image's area.
+
+    Box mode, `split` (static): the pixels whose edge is seen in or through a mirror or
+    glass sphere, or is the outline of one (`split_pixels`), are traced again as 2 × 2
+    sub-boxes (`split_boxes`), each with its own nearest edge and sides; their blend is
+    the mean of the four. Through a curved mirror or glass the world behind is far from
+    linear across a pixel, and one straight edge a pixel misplaces its derivative.
     """
     m = prepare(s, p)
-    watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width, curves=mode == BOX)
+    split = split and mode == BOX and s.needs_secondary_rays
+    watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width, curves=mode == BOX, lights=m.lights if split else None)
     rays, best = _chain(s, p, m, start_rays(o, d, mode, diff), depth, mode, width, watch=watch)
     centre = jnp.clip(rays.colour, 0, 255)
     n = o.shape[1]
@@ -381,15 +388,61 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
         toggles = spheres.Toggles(two(none, side.edge), two(side.edge, none))
     out, _ = _chain(s, p, m, start, depth, mode, width, toggles)
     inside, outside = jnp.split(jnp.clip(out.colour, 0, 255), 2, axis=-1)
+    blended = packed.scatter(centre, side.alpha * inside + (1 - side.alpha) * outside)
     if mode == SIDED:
         flipped, shadow_x = jnp.clip(rays.colour + rays.flip.delta, 0, 255), rays.flip.x
     else:
         flipped, shadow_x = centre, jnp.full((n,), jnp.inf, centre.dtype)
-    return edges.EdgeSamples(centre=centre, blended=packed.scatter(centre, side.alpha * inside + (1 - side.alpha) * outside),
+        if split:
+            chosen = pack(split_pixels(s, best, width), packed.index.shape[0])
+            blended = chosen.scatter(blended, split_boxes(s, p, chosen.gather((o, d, diff)), chosen.count, depth, width))
+    return edges.EdgeSamples(centre=centre, blended=blended,
                              inside=packed.scatter(centre, inside), outside=packed.scatter(centre, outside),
                              alpha=packed.scatter(jnp.ones_like(side.alpha, shape=(n,)), side.alpha),
                              x=packed.scatter(jnp.zeros_like(side.x, shape=(n,)), side.x), flipped=flipped,
                              shadow_x=shadow_x)
+
+
+def split_pixels(s: Structure, best: edges.Best, width):
+    """Which pixels `trace_edges` splits into sub-boxes: those whose box (`width` sample
+    steps) the nearest silhouette may cross (within `edges.CROSSING` boxes) where it
+    lies past a mirror or glass hit (on a segment after the first) or is a mirror's or
+    a glass sphere's own outline or intersection curve, and those with a shadow edge
+    that may cross it past a mirror or glass hit (`Best.shadowed`)."""
+    kind = jnp.asarray(s.mask(MIRROR, GLASS))
+    own = kind[jnp.maximum(best.edge, 0)] | ((best.partner >= 0) & kind[jnp.maximum(best.partner, 0)])
+    crossed = (best.edge >= 0) & (best.score < edges.CROSSING * width)
+    return (crossed & ((best.rays.level > 0) | own)) | best.shadowed
+
+
+#: `split_boxes` traces the sub-boxes of at most this many pixels together, skipping
+#: groups past the last split pixel at run time.
+SPLIT_GROUP = 1024
+
+
+def split_boxes(s: Structure, p: Params, primary, count, depth: int, width) -> Float[Array, "3 k"]:
+    """Box-filtered colours (3, K) of K pixels as the mean of their 2 × 2 sub-boxes, each
+    traced in box mode (its own nearest edge, its own sides); `primary` (o, d and their
+    differentials per pixel), moved to the sub-boxes' centres by the differentials.
+    `count` (traced): only the first `count` pixels are wanted."""
+    o, d, df = primary
+    k = o.shape[-1]
+    quarter = width / 4
+    offsets = ((-1, -1), (1, -1), (-1, 1), (1, 1))
+
+    def four(a):  # 4 × (..., K) → (..., 4K), a pixel's four sub-boxes next to one another
+        return jnp.stack(a, axis=-1).reshape(a[0].shape[:-1] + (4 * k,))
+
+    so = four([o + (sx * df.ox + sy * df.oy) * quarter for sx, sy in offsets])
+    sd = four([normalize(d + (sx * df.dx + sy * df.dy) * quarter) for sx, sy in offsets])
+    sdiff = edges.Differentials(*(four([a / 2] * 4) for a in df))
+    group = 4 * min(k, SPLIT_GROUP)
+
+    def run(o, d, diff):
+        return trace_edges(s, p, o, d, diff, depth, width, BOX, group).blended
+
+    colour = tiled(run, group, so, sd, sdiff, count=4 * jnp.minimum(count, k))
+    return colour.reshape(3, k, 4).mean(axis=-1)
 
 
 def tiled(fn, tile: int, *arrays, count=None):

@@ -1,5 +1,6 @@
 """Forward cost of the silhouette-aware mode against the plain render, side by side in
-one process (alternating runs, medians): the ratio issue 21 bounds (≤ 3×).
+one process (alternating runs, medians): the ratio issue 21 bounds (≤ 3×); and of the
+mode with its 2 × 2 split in mirrors and glass (`render(..., split=True)`).
 
     python scripts/edges_cost.py [--deck scenes/ex2s3.dat] [--runs 7]
 """
@@ -23,18 +24,20 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=7)
     args = ap.parse_args()
     scene = rtjax.load_deck(args.deck).frames[0].scene
-    fns = {w: (lambda s, w=w: rtjax.render(s, edges=w)) for w in (0.0, 1.0)}
+    fns = {"plain": lambda s: rtjax.render(s), "edges=1": lambda s: rtjax.render(s, edges=1.0),
+           "edges=1 split": lambda s: rtjax.render(s, edges=1.0, split=True)}
     for fn in fns.values():
         jax.block_until_ready(fn(scene))
-    times = {w: [] for w in fns}
+    times = {k: [] for k in fns}
     for _ in range(args.runs):
-        for w, fn in fns.items():
+        for k, fn in fns.items():
             t = time.perf_counter()
             jax.block_until_ready(fn(scene))
-            times[w].append(time.perf_counter() - t)
-    plain, box = statistics.median(times[0.0]), statistics.median(times[1.0])
-    print(f"{args.deck}: plain {plain * 1e3:.1f} ms, edges=1 {box * 1e3:.1f} ms, ratio {box / plain:.2f}x "
-          f"(medians of {args.runs}, alternating)")
+            times[k].append(time.perf_counter() - t)
+    plain = statistics.median(times["plain"])
+    text = ", ".join(f"{k} {statistics.median(v) * 1e3:.1f} ms ({statistics.median(v) / plain:.2f}x)"
+                     for k, v in times.items())
+    print(f"{args.deck}: {text} (medians of {args.runs}, alternating)")
 
 
 if __name__ == "__main__":

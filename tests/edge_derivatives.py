@@ -56,15 +56,16 @@ def varied(name: str, s: rtjax.Scene):
     return at, len(params)
 
 
-def derivative_images(name: str, edges: float = 1.0, spp: int = 1):
-    """The mode's image (H, W, 3) and its derivative images (P, H, W, 3) by jax.jacfwd."""
+def derivative_images(name: str, edges: float = 1.0, spp: int = 1, split: bool = False):
+    """The mode's image (H, W, 3) and its derivative images (P, H, W, 3) by jax.jacfwd
+    (`split`: `render(..., split=True)`)."""
     s = scene(name)
     at, n = varied(name, s)
     depth = DECKS[name][1]
 
     @jax.jit
     def f(v):
-        image = rtjax.render(at(v), depth=depth, edges=edges, spp=spp)
+        image = rtjax.render(at(v), depth=depth, edges=edges, spp=spp, split=split)
         return image, image
 
     jac, image = jax.jacfwd(f, has_aux=True)(jnp.zeros(n, jnp.float64))
