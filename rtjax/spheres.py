@@ -19,8 +19,6 @@ length relative to the scene's scale (touching spheres), never an absolute const
 
 from __future__ import annotations
 
-import functools
-import operator
 from typing import NamedTuple
 
 import jax
@@ -29,7 +27,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .compact import pack
-from .numerics import components, dot, normalize, safe_sqrt, spread
+from .numerics import dot, normalize, safe_sqrt, spread
 
 #: Relative size of the hit-distance floor for spheres other than the ray's origin.
 TMIN_REL = {jnp.dtype(jnp.float32): 1e-4, jnp.dtype(jnp.float64): 1e-9}
@@ -256,7 +254,7 @@ def transmission(o, d, centers, radii, origin, tmin, opacity_factor, skip=None, 
     if skip is not None:
         blocked = blocked & others(skip, centers.shape[0])
     factor = jnp.where(blocked, opacity_factor[:, None], 1)
-    return functools.reduce(operator.mul, components(factor))  # reverse mode: no padded copies
+    return jnp.prod(factor, axis=0)
 
 
 # -- culling: each ray against the spheres it can meet ------------------------------------
