@@ -9,6 +9,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .numerics import normalize as _normalize
+from .numerics import spread
 
 
 def normalize(v):
@@ -60,7 +61,7 @@ def rays_through(
     half = jnp.tan(jnp.deg2rad(vang) / 2)
     sx = (xy[0] / width * 2 - 1) * half[0]
     sy = (1 - xy[1] / height * 2) * half[1]
-    d = normalize(w[:, None] + u[:, None] * sx + v[:, None] * sy)
+    d = normalize(w[:, None] + spread(sx) * u[:, None] + spread(sy) * v[:, None])
     return jnp.broadcast_to(eye[:, None], d.shape), d
 
 

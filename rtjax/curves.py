@@ -68,7 +68,7 @@ def nearest_curve(o, d, diff, live, hit: spheres.Hit, tab: spheres.Table, center
     disc = r**2 - tab.l2
     tk = -tab.b - jnp.sqrt(jnp.maximum(disc, 0))
     th = sg(hit.t)[None, :]
-    gap = jnp.sum((centers[:, None, :] - centers[h][None, :, :]) ** 2, axis=-1)
+    gap = sum((centers[:, None, i] - centers[h][None, :, i]) ** 2 for i in range(3))  # no reduction over 3
     cuts = gap < (r + radii[h][None, :]) ** 2
     ok = (live & hit.found & hit.entering)[None, :] & (k != hit.index[None, :]) & (tab.f2 > r**2) & (disc > 0)
     ok = ok & (tk >= th) & cuts

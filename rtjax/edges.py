@@ -39,7 +39,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from . import curves, spheres
-from .numerics import dot, normalize, safe_div, safe_sqrt, tiny
+from .numerics import dot, normalize, safe_div, safe_sqrt, spread, tiny
 
 #: Smallest |component| of an edge's normal used in the box filter: keeps the
 #: trapezoid formula's division well conditioned for axis-aligned edges.
@@ -123,7 +123,7 @@ def hit_motion(hit: spheres.Hit, o, d, diff: Differentials) -> Motion:
 
     def move(do, dd):
         v = do + t * dd
-        return v - dot(normal, v) / nd * d
+        return v - spread(dot(normal, v) / nd) * d
 
     return Motion(move(diff.ox, diff.dx), move(diff.oy, diff.dy))
 
@@ -140,8 +140,8 @@ def edge_terms(o, d, ox, dx, oy, dy, c, r):
     l = safe_sqrt(dot(lvec, lvec), floor)
     lhat = normalize(lvec)
     t = -b
-    rx = dot(lhat, ox + t * dx)
-    ry = dot(lhat, oy + t * dy)
+    rx = dot(lhat, ox + spread(t) * dx)
+    ry = dot(lhat, oy + spread(t) * dy)
     rate = safe_sqrt(rx**2 + ry**2, floor)
     return safe_div(l - r, rate), safe_div(rx, rate), safe_div(ry, rate), t, dot(f, f) > r**2
 
@@ -411,6 +411,7 @@ def offset_rays(o, d, df: Differentials, z, width, nx, ny):
     """Rays (o, d) moved `z` box sides along an edge's inward normal −(nx, ny) in the
     image, by their differentials `df` (a box is `width` sample steps wide)."""
     sx, sy = -z * width * nx, -z * width * ny
+    sx, sy = spread(sx), spread(sy)
     return o + sx * df.ox + sy * df.oy, normalize(d + sx * df.dx + sy * df.dy)
 
 

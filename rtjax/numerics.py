@@ -33,9 +33,33 @@ def _safe_sqrt_jvp(primals, tangents):
     return safe_sqrt(x, floor), dx * 0.5 / jnp.sqrt(jnp.maximum(x, floor))
 
 
+@jax.custom_jvp
+def spread(s):
+    """A per-ray scalar s (...) as a (3, ...) array, one copy per component: s·v for
+    vectors v (3, ...) is `spread(s) * v`.
+
+    The same values as broadcasting, but its tangent is a stack of three copies, so
+    reverse mode sums the three rows of a cotangent elementwise where a broadcast's
+    transpose is a reduction over an axis of 3, which XLA's CPU backend runs slowly."""
+    return jnp.broadcast_to(s, (3,) + jnp.shape(s))
+
+
+@spread.defjvp
+def _spread_jvp(primals, tangents):
+    (s,), (ds,) = primals, tangents
+    return spread(s), jnp.stack([ds, ds, ds])
+
+
+def components(v) -> list:
+    """The rows v[0], v[1], ... of an array, taken by one `lax.split`: reverse mode
+    stacks their cotangents back with one concatenation, where each v[k]'s transpose
+    is a zero-padded copy of the whole array."""
+    return [x.reshape(x.shape[1:]) for x in jax.lax.split(v, (1,) * v.shape[0], axis=0)]
+
+
 def _sum_sq(v, axis: int, keepdims: bool):
     if axis == 0:  # written out: XLA's CPU reduction over a leading axis of 3 is slow
-        sq = sum(v[k] * v[k] for k in range(v.shape[0]))
+        sq = sum(x * x for x in components(v))
         return sq[None] if keepdims else sq
     return jnp.sum(v * v, axis=axis, keepdims=keepdims)
 
@@ -49,6 +73,10 @@ def norm(v, axis: int = 0, keepdims: bool = False):
 
 def normalize(v, axis: int = 0):
     """v/|v|; the zero vector maps to zero with a zero (not NaN) derivative."""
+    if axis == 0 and v.shape[0] == 3:
+        sq = _sum_sq(v, 0, False)
+        ok = sq > tiny(v.dtype)
+        return jnp.where(ok, v / spread(jnp.sqrt(jnp.where(ok, sq, 1))), 0)
     sq = _sum_sq(v, axis, True)
     ok = sq > tiny(v.dtype)
     return jnp.where(ok, v / jnp.sqrt(jnp.where(ok, sq, 1)), 0)
@@ -69,4 +97,5 @@ def safe_div(a, b):
 
 def dot(a, b):
     """Component-wise dot product of (3, ...) arrays."""
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+    (a0, a1, a2), (b0, b1, b2) = components(a), components(b)
+    return a0 * b0 + a1 * b1 + a2 * b2

@@ -16,8 +16,10 @@ from .edges import Differentials, EdgeSamples, edge_pixels
 from .errors import RtjaxError
 from .scene import Params, Scene, Structure
 from .spheres import coherent_order
-from .trace import BOX, PLAIN, SIDED, Mode, tiled, trace, trace_edges
+from .trace import BOX, LEVEL, PLAIN, SIDED, Mode, tiled, trace, trace_edges
 
+#: Depths must be below this (`trace.LEVEL` counts segments).
+MAX_DEPTH = int(jnp.iinfo(LEVEL).max)
 #: The widest edge box the silhouette-aware mode takes, in pixels.
 MAX_EDGE_WIDTH = 16.0
 
@@ -54,8 +56,8 @@ def resolve_depth(structure: Structure, depth: int | None) -> int:
     """The scene's default, and 0 whatever is asked when nothing spawns a further ray."""
     if depth is None:
         return structure.default_depth
-    if depth < 0:
-        raise RtjaxError(f"depth must be ≥ 0, not {depth}")
+    if not 0 <= depth < MAX_DEPTH:
+        raise RtjaxError(f"depth must be in [0, {MAX_DEPTH}), not {depth}")
     return int(depth) if structure.needs_secondary_rays else 0
 
 

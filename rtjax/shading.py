@@ -16,13 +16,13 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .numerics import dot, safe_pow
+from .numerics import dot, safe_pow, spread
 
 
 def phong_angles(n: Float[Array, "3 p"], v: Float[Array, "3 p"], light: Float[Array, " 3"]):
     """N·L and cos γ = R_L·V for every ray, for one light, each (P,)."""
     nl = dot(n, light[:, None])
-    r_l = 2 * nl * n - light[:, None]
+    r_l = spread(2 * nl) * n - light[:, None]
     return nl, dot(r_l, v)
 
 
@@ -39,4 +39,4 @@ def local_light(
     """One light's term: ke·d·L + S·[(1 − ke)·max(N·L, 0)·d·L + ks·L·max(cos γ, 0)^β·[N·L > 0]]."""
     diffuse = (1 - ke) * jnp.maximum(nl, 0)
     specular = jnp.where(nl > 0, ks * safe_pow(cos_g, beta), 0)
-    return ((ke + visibility * diffuse) * d + visibility * specular) * light_color[:, None]
+    return (spread(ke + visibility * diffuse) * d + spread(visibility * specular)) * light_color[:, None]

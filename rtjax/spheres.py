@@ -27,7 +27,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .compact import pack
-from .numerics import dot, normalize, safe_sqrt
+from .numerics import dot, normalize, safe_sqrt, spread
 
 #: Relative size of the hit-distance floor for spheres other than the ray's origin.
 TMIN_REL = {jnp.dtype(jnp.float32): 1e-4, jnp.dtype(jnp.float64): 1e-9}
@@ -50,7 +50,7 @@ def offsets(o, d, c):
     d) from sphere centres c, all (3, ...) broadcast: every ray–sphere test starts here."""
     f = o - c
     b = dot(f, d)
-    return f, b, f - b * d
+    return f, b, f - spread(b) * d
 
 
 class Roots(NamedTuple):
@@ -224,12 +224,12 @@ def nearest_hit(o, d, centers, radii, origin, tmin, cull: bool, toggles: Toggles
     c, r = centers.T[:, idx], radii[idx]
     b, l, sq = sphere_geometry(o, d, c, r)
     t = -b + sign * sq
-    normal = (l + sign * sq * d) / r
-    point = o + t * d
+    normal = (l + spread(sign * sq) * d) / spread(r)
+    point = o + spread(t) * d
     if toggles is not None:
         t = jnp.where(forced, -b, t)
         normal = jnp.where(forced, normalize(l), normal)
-        point = jnp.where(forced, c + r * normal, point)
+        point = jnp.where(forced, c + spread(r) * normal, point)
     return Hit(found=found, index=jnp.where(found, idx, -1), entering=found & ~far, t=jnp.where(found, t, 0),
                normal_out=jnp.where(found, normal, 0), point=jnp.where(found, point, o),
                live=found if active is None else found & active, table=tab)

@@ -27,7 +27,7 @@ from jaxtyping import Array, Float, Int, UInt
 
 from . import edges, spheres
 from .compact import pack
-from .numerics import dot, normalize, safe_sqrt
+from .numerics import dot, normalize, safe_sqrt, spread
 from .scene import GLASS, MIRROR, OPAQUE, TEXTURE, Params, Structure
 from .shading import local_light, phong_angles
 from .textures import textured_diffuse
@@ -154,16 +154,21 @@ def next_direction(s: Structure, p: Params, idx, d, n, entering):
     taken as 0: the ray refracts, tangent to the surface, and k carries no derivative
     (it is identically 0 along a grazing hit)."""
     cos_i = -dot(d, n)
-    reflected = d + 2 * cos_i * n
+    reflected = d + spread(2 * cos_i) * n
     if not s.has(GLASS):
         return reflected
     eta = jnp.where(entering, 1 / p.ior[idx], p.ior[idx])
     k = 1 - eta**2 * (1 - cos_i**2)
     band = CRITICAL_BAND[jnp.dtype(d.dtype)]
     root = safe_sqrt(jnp.where(k > band, k, 0), jnp.asarray(TIR_SLOPE_FLOOR[jnp.dtype(d.dtype)], d.dtype))
-    refracted = eta * d + (eta * cos_i - root) * n
+    refracted = spread(eta) * d + spread(eta * cos_i - root) * n
     glass = jnp.asarray(s.mask(GLASS))[idx]
     return jnp.where(glass & (k > -band), refracted, reflected)
+
+
+#: The dtype of `Rays.level`: reverse mode keeps it per ray and segment, so it is narrow
+#: (depths up to 32767).
+LEVEL = jnp.int16
 
 
 class Rays(NamedTuple):
@@ -174,7 +179,7 @@ class Rays(NamedTuple):
     origin: Int[Array, " p"]  # sphere the ray leaves (−1: the eye)
     weight: Float[Array, " p"]  # product of kt so far; 0 once the chain has ended
     colour: Float[Array, "3 p"]
-    level: Int[Array, " p"]  # this segment's index in the chain (0: primary)
+    level: Int[Array, " p"]  # this segment's index in the chain (0: primary), `LEVEL`
     flip: "edges.Flip | None" = None  # sided mode: the nearest shadow edge so far
     key: "UInt[Array, ' p'] | None" = None  # keyed traces: the chain's hits so far, hashed (`hit_key`)
     diff: "edges.Differentials | None" = None  # box and sided modes: the rays' change per sample step
@@ -186,7 +191,7 @@ def start_rays(o, d, mode: Mode, diff: edges.Differentials | None = None, keyed:
     p = o.shape[1:]
     flip = edges.Flip.none(o[0]) if mode == SIDED else None
     key = jnp.full(p, _FNV_BASIS, jnp.uint32) if keyed else None
-    return Rays(o, d, jnp.full(p, -1, jnp.int32), jnp.ones(p, o.dtype), jnp.zeros_like(o), jnp.zeros(p, jnp.int32), flip,
+    return Rays(o, d, jnp.full(p, -1, jnp.int32), jnp.ones(p, o.dtype), jnp.zeros_like(o), jnp.zeros(p, LEVEL), flip,
                 key, diff)
 
 
@@ -212,7 +217,7 @@ def segment(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: 
     if flip is not None:  # this hit's nearest shadow edge, weighted like the colour it would change
         seen = hit.found & active
         flip = flip.nearer(edges.Flip(jnp.where(seen, shade.flip.x, jnp.inf), rays.weight * shade.flip.delta))
-    colour = rays.colour + rays.weight * jnp.where(hit.found, shade.colour, p.background[:, None])
+    colour = rays.colour + spread(rays.weight) * jnp.where(hit.found, shade.colour, p.background[:, None])
     if not s.needs_secondary_rays:
         return rays._replace(weight=jnp.zeros_like(rays.weight), colour=colour, flip=flip, key=key), hit
     idx = jnp.maximum(hit.index, 0)
@@ -260,9 +265,13 @@ def _chain(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: M
     first segment only; `watch` (the silhouette mode's `edges.EdgeWatch`) is folded over
     the segments. Returns the rays after the last segment and the fold (None without).
 
-    The body is checkpointed: reverse mode keeps only the state entering each segment
-    and recomputes the segment's intermediates from it, so the gradient's memory hardly
-    grows with the depth (forward mode and the image are unaffected). The recomputation
+    Each segment that runs is checkpointed: reverse mode keeps only the state entering
+    it (not the colour gathered so far, nor toggles when there are none; the level is
+    narrow) and recomputes the segment's intermediates from it, so the gradient's memory
+    hardly grows with the depth (forward mode and the image are unaffected). The
+    checkpoint sits inside the `lax.cond`: a skipped segment fills no residuals but the
+    state it would have kept (a checkpoint around the `lax.cond` made reverse mode fill
+    zeros for every intermediate of every skipped segment). The recomputation
     is another compiled program than the forward pass, so its rounding differs: the
     choices rounding alone used to settle (at the silhouette mode's grazing hits:
     `next_direction`, `spheres.roots`, `edges.hit_motion`) are made on quantities
@@ -277,23 +286,34 @@ def _chain(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: M
     if not s.needs_secondary_rays:
         rays2, hit = segment(s, p, m, rays, depth, mode, width, toggles)
         return rays2, None if watch is None else watch(rays, hit, watch.empty(rays))
-    if toggles is None:
-        toggles = spheres.Toggles.off(rays.weight)
     best = None if watch is None else watch.empty(rays)
     sizes = tiers(rays.weight.shape[0])
 
-    def body(carry, _, nxt):
-        def run(c):
-            r, tg, b = c
-            r2, h = segment(s, p, m, r, depth, mode, width, tg)
-            return r2, (tg if tg.level is not None else spheres.Toggles.off(tg.exclude)), (b if watch is None else watch(r, h, b))
+    def run(c):
+        r, tg, b = c
+        if watch is None:  # the colour gathered so far stays outside (`gather`)
+            r = r._replace(colour=jnp.zeros_like(r.o))
+        r2, h = segment(s, p, m, r, depth, mode, width, tg)
+        tg = tg if tg is None or tg.level is not None else spheres.Toggles.off(tg.exclude)  # None: none carried
+        return r2, tg, (b if watch is None else watch(r, h, b))
 
-        return jax.lax.cond(jnp.sum(carry[0].weight > 0) > nxt, run, lambda c: c, carry), None
+    segment_kept = jax.checkpoint(run, prevent_cse=False)
+
+    def gather(c):
+        """One segment; without a fold, the colour gathered so far is added after the
+        checkpoint (0 + x is x exactly), so reverse mode need not keep it per segment."""
+        if watch is not None:
+            return segment_kept(c)
+        r, tg, b = c
+        r2, tg2, b2 = segment_kept((r._replace(colour=None), tg, b))
+        return r2._replace(colour=r.colour + r2.colour), tg2, b2
+
+    def body(carry, _, nxt):
+        return jax.lax.cond(jnp.sum(carry[0].weight > 0) > nxt, gather, lambda c: c, carry), None
 
     def tier(state, i):
         nxt = sizes[i + 1] if i + 1 < len(sizes) else 0
-        step = functools.partial(body, nxt=nxt)
-        state, _ = jax.lax.scan(jax.checkpoint(step, prevent_cse=False), state, length=depth + 1)
+        state, _ = jax.lax.scan(functools.partial(body, nxt=nxt), state, length=depth + 1)
         if not nxt:
             return state
         # at most `nxt` rays are alive now (or none: every ray ended within the depth)
@@ -388,7 +408,7 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
         toggles = spheres.Toggles(two(none, side.edge), two(side.edge, none))
     out, _ = _chain(s, p, m, start, depth, mode, width, toggles)
     inside, outside = jnp.split(jnp.clip(out.colour, 0, 255), 2, axis=-1)
-    blended = packed.scatter(centre, side.alpha * inside + (1 - side.alpha) * outside)
+    blended = packed.scatter(centre, spread(side.alpha) * inside + spread(1 - side.alpha) * outside)
     if mode == SIDED:
         flipped, shadow_x = jnp.clip(rays.colour + rays.flip.delta, 0, 255), rays.flip.x
     else:
