@@ -73,10 +73,6 @@ def norm(v, axis: int = 0, keepdims: bool = False):
 
 def normalize(v, axis: int = 0):
     """v/|v|; the zero vector maps to zero with a zero (not NaN) derivative."""
-    if axis == 0 and v.shape[0] == 3:
-        sq = _sum_sq(v, 0, False)
-        ok = sq > tiny(v.dtype)
-        return jnp.where(ok, v / spread(jnp.sqrt(jnp.where(ok, sq, 1))), 0)
     sq = _sum_sq(v, axis, True)
     ok = sq > tiny(v.dtype)
     return jnp.where(ok, v / jnp.sqrt(jnp.where(ok, sq, 1)), 0)
