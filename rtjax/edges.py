@@ -407,12 +407,16 @@ class Sides(NamedTuple):
 ACROSS = 0.05
 
 
+def moved_rays(o, d, df: Differentials, sx, sy):
+    """Rays (o, d) moved (sx, sy) sample steps in the image by their differentials `df`
+    (sx, sy: scalars, or per ray through `spread`)."""
+    return o + sx * df.ox + sy * df.oy, normalize(d + sx * df.dx + sy * df.dy)
+
+
 def offset_rays(o, d, df: Differentials, z, width, nx, ny):
     """Rays (o, d) moved `z` box sides along an edge's inward normal −(nx, ny) in the
     image, by their differentials `df` (a box is `width` sample steps wide)."""
-    sx, sy = -z * width * nx, -z * width * ny
-    sx, sy = spread(sx), spread(sy)
-    return o + sx * df.ox + sy * df.oy, normalize(d + sx * df.dx + sy * df.dy)
+    return moved_rays(o, d, df, spread(-z * width * nx), spread(-z * width * ny))
 
 
 def both_sides(best: Best, centers, radii, width) -> Sides:

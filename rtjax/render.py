@@ -75,7 +75,7 @@ def default_tile() -> int:
     return 1 << 17 if jax.default_backend() == "cpu" else 1 << 20
 
 
-def resolve_options(scene: Scene, depth, spp, dtype, edges, tile) -> Options:
+def resolve_options(scene: Scene, depth, spp, dtype, edges, tile, split: bool = False) -> Options:
     """`render`'s options checked (a clear `RtjaxError` for a bad one) and resolved;
     `render_batch` and `render_frames` share them."""
     if int(spp) < 1:
@@ -83,7 +83,8 @@ def resolve_options(scene: Scene, depth, spp, dtype, edges, tile) -> Options:
     edges = float(edges)
     if not (0 <= edges <= MAX_EDGE_WIDTH):
         raise RtjaxError(f"edges (an edge width in pixels) must be in [0, {MAX_EDGE_WIDTH:g}], not {edges}")
-    return Options(resolve_depth(scene.structure, depth), int(spp), resolve_dtype(scene, dtype), edges, resolve_tile(tile))
+    return Options(resolve_depth(scene.structure, depth), int(spp), resolve_dtype(scene, dtype), edges, resolve_tile(tile),
+                   bool(split))
 
 
 def render(
@@ -117,7 +118,7 @@ def render(
 
     Differentiable in `scene.params` with jax.grad / jax.jacfwd / jax.jvp.
     """
-    options = dataclasses.replace(resolve_options(scene, depth, spp, dtype, edges, tile), split=bool(split))
+    options = resolve_options(scene, depth, spp, dtype, edges, tile, split)
     return _render(scene.params.astype(options.dtype), scene.structure, options)
 
 

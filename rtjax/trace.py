@@ -453,8 +453,8 @@ def split_boxes(s: Structure, p: Params, primary, count, depth: int, width) -> F
     def four(a):  # 4 × (..., K) → (..., 4K), a pixel's four sub-boxes next to one another
         return jnp.stack(a, axis=-1).reshape(a[0].shape[:-1] + (4 * k,))
 
-    so = four([o + (sx * df.ox + sy * df.oy) * quarter for sx, sy in offsets])
-    sd = four([normalize(d + (sx * df.dx + sy * df.dy) * quarter) for sx, sy in offsets])
+    moved = [edges.moved_rays(o, d, df, sx * quarter, sy * quarter) for sx, sy in offsets]
+    so, sd = four([m[0] for m in moved]), four([m[1] for m in moved])
     sdiff = edges.Differentials(*(four([a / 2] * 4) for a in df))
     group = 4 * min(k, SPLIT_GROUP)
 
