@@ -64,6 +64,15 @@ def quick_xla(clear: bool = False):
             jax.clear_caches()
 
 
+@pytest.fixture(scope="module")
+def quick_build():
+    """`quick_xla` over a whole test module, its caches cleared after it: for modules of
+    fits and tolerance checks whose cost is compiling (opt in with
+    `pytestmark = pytest.mark.usefixtures("quick_build")`)."""
+    with quick_xla(clear=True):
+        yield
+
+
 # -- background work: subprocesses that some tests wait for ------------------------------
 #
 # XLA compiles on one core and the suite runs one test after another, so on a machine

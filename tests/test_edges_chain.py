@@ -27,6 +27,9 @@ from edge_derivatives import compare, derivative_images, yardsticks
 from edge_scenes import DECKS, SPP
 from rtjax import reference
 
+#: compile-bound tolerance checks: XLA's quick build (`conftest.quick_build`)
+pytestmark = pytest.mark.usefixtures("quick_build")
+
 
 #: The scenes checked with the 2 × 2 split in mirrors and glass (`render(..., split=True)`),
 #: the others in the one-box mode.

@@ -14,6 +14,9 @@ from conftest import ROOT, scene_from_text, truth_deck
 import fitting
 import rtjax
 
+#: compile-bound fits and tolerance checks: XLA's quick build (`conftest.quick_build`)
+pytestmark = pytest.mark.usefixtures("quick_build")
+
 # `truth`: conftest.py's fitting truth, 64 pixels wide
 
 

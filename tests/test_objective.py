@@ -17,6 +17,9 @@ from fitting.options import FitOptions
 from fitting.problem import Problem
 from fitting.select import Selection
 
+#: compile-bound fits and tolerance checks: XLA's quick build (`conftest.quick_build`)
+pytestmark = pytest.mark.usefixtures("quick_build")
+
 DECK = """
 sphe -2.3 0 0.7 6
 opaq 0.9 0.3 0.2 0.4 12

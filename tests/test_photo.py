@@ -19,6 +19,9 @@ import rtjax
 from fitting.photo import RANGES, Photo
 from fitting.verdict import CONFIDENCE, bounds_reached, footprints
 
+#: compile-bound fits and tolerance checks: XLA's quick build (`conftest.quick_build`)
+pytestmark = pytest.mark.usefixtures("quick_build")
+
 
 def moved(scene: rtjax.Scene, **deltas) -> rtjax.Scene:
     return scene.replace(**{k: np.asarray(getattr(scene.params, k)) + v for k, v in deltas.items()})
