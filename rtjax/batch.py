@@ -179,7 +179,8 @@ def _shade(s: Structure, p: Params, k, options: Options):
     mode = BOX if options.edges else PLAIN
 
     def sample(offset):
-        return colours_at(s, p, ij + offset[:, None], step, options.depth, options.tile, mode, options.edges)
+        return colours_at(s, p, ij + offset[:, None], step, options.depth, options.tile, mode, options.edges,
+                          subdivide=options.subdivide)
 
     return supersample(sample, options.spp, (3, k.shape[0]), dtype)
 
@@ -250,6 +251,7 @@ def render_batch(
     dtype=None,
     edges: float = 0.0,
     tile: int | None = None,
+    subdivide: bool = False,
     devices=None,
     split: str = "auto",
     mode: str = "auto",
@@ -257,7 +259,7 @@ def render_batch(
     """Images (F, H, W, 3) of F frames of one structure in one jit-compiled call:
     `params` has a leading frame axis on every leaf (`stack_params`, or a sweep built
     with `jax.vmap`/`jnp.linspace`). Each image equals `rtjax.render` of that frame
-    bit for bit. Options as `rtjax.render`; `devices` (None: one; an int; "all"; a
+    bit for bit. Options as `rtjax.render` (`subdivide` too); `devices` (None: one; an int; "all"; a
     list of devices) shards the work: `split` "pixels", "frames", or "auto" (frames
     when there are at least as many frames as devices, else pixels).
 
@@ -278,7 +280,7 @@ def render_batch(
     if mode not in ("auto", "vmap", "map"):
         raise RtjaxError(f"mode must be 'auto', 'vmap' or 'map', not {mode!r}")
     first = jax.tree.map(lambda a: a[0], params)
-    options = resolve_options(Scene(structure, first), depth, spp, dtype, edges, tile)
+    options = resolve_options(Scene(structure, first), depth, spp, dtype, edges, tile, subdivide)
     mesh = device_mesh(devices)
     n = 1 if mesh is None else mesh.devices.size
     if split == "auto":
@@ -298,7 +300,7 @@ def render_batch(
 
 
 def render_sharded(scene: Scene, *, devices="all", depth: int | None = None, spp: int = 1, dtype=None,
-                   edges: float = 0.0, tile: int | None = None):
+                   edges: float = 0.0, tile: int | None = None, subdivide: bool = False):
     """One image (H, W, 3) with its pixels sharded over `devices` (default every
     device): equal to `rtjax.render(scene)` bit for bit; on one device it is that.
 
@@ -308,8 +310,8 @@ def render_sharded(scene: Scene, *, devices="all", depth: int | None = None, spp
     that at some pixels (README "Several devices and hosts")."""
     mesh = device_mesh(devices)
     if mesh is None:
-        return render(scene, depth=depth, spp=spp, dtype=dtype, edges=edges, tile=tile)
-    options = resolve_options(scene, depth, spp, dtype, edges, tile)
+        return render(scene, depth=depth, spp=spp, dtype=dtype, edges=edges, tile=tile, subdivide=subdivide)
+    options = resolve_options(scene, depth, spp, dtype, edges, tile, subdivide)
     params = _global(scene.params.astype(options.dtype), mesh, PartitionSpec())
     return _local_copy(_render_grid(params, scene.structure, options, mesh, False, "pixels"))
 
@@ -334,14 +336,14 @@ def plan_batches(scenes: Sequence[Scene], devices: int = 1, batch: int | None = 
     return out
 
 
-def render_chunk(scenes: Sequence[Scene], *, depth=None, spp=1, dtype=None, edges=0.0, tile=None, devices=None,
-                 mode: str = "auto") -> list:
+def render_chunk(scenes: Sequence[Scene], *, depth=None, spp=1, dtype=None, edges=0.0, tile=None, subdivide=False,
+                 devices=None, mode: str = "auto") -> list:
     """Images of scenes that share one structure, in one call: `render_batch` of their
     stacked params; a lone scene is `render_sharded` (on one device, `rtjax.render`)."""
     scenes = list(scenes)
     if len({s.structure for s in scenes}) != 1:
         raise RtjaxError("render_chunk needs scenes of one structure (see group_by_structure)")
-    options = {"depth": depth, "spp": spp, "dtype": dtype, "edges": edges}
+    options = {"depth": depth, "spp": spp, "dtype": dtype, "edges": edges, "subdivide": subdivide}
     if tile is not None:
         options["tile"] = tile
     if len(scenes) == 1:
@@ -360,6 +362,7 @@ def render_frames(
     dtype=None,
     edges: float = 0.0,
     tile: int | None = None,
+    subdivide: bool = False,
     devices=None,
     batch: int | None = None,
     mode: str = "auto",
@@ -373,7 +376,7 @@ def render_frames(
     n = len(resolve_devices(devices))
     for chunk in plan_batches(scenes, n, batch):
         out = render_chunk([scenes[i] for i in chunk], depth=depth, spp=spp, dtype=dtype, edges=edges, tile=tile,
-                           devices=devices, mode=mode)
+                           subdivide=subdivide, devices=devices, mode=mode)
         for i, image in zip(chunk, out):
             images[i] = image
     return images

@@ -129,8 +129,8 @@ def cmd_render(args) -> int:
 
     n_devices = len(resolve_devices(args.devices))
     writer = jax.process_index() == 0  # several hosts: every process renders, the first one writes
-    options = {"depth": args.depth, "spp": args.spp, "dtype": args.dtype, "edges": args.edges, "devices": args.devices,
-               "mode": args.batch_mode}
+    options = {"depth": args.depth, "spp": args.spp, "dtype": args.dtype, "edges": args.edges, "subdivide": args.subdivide,
+               "devices": args.devices, "mode": args.batch_mode}
     # Frames sharing a structure render together (one batched call per chunk); frames are
     # still written and reported in deck order, each with its share of its call's time.
     scenes = [frame.scene for frame, _ in plan]
@@ -330,6 +330,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="arithmetic precision (default float32)")
     r.add_argument("--edges", type=_edge_width, default=0.0, metavar="WIDTH",
                    help="silhouette-aware (antialiased, edge-differentiable) mode with this edge width in pixels (default 0: off)")
+    r.add_argument("--subdivide", action="store_true",
+                   help="with --edges: trace the edge pixels of mirrors and glass as 2x2 sub-boxes (see docs/EDGES.md)")
     r.add_argument("--png", action="store_true", help="also write a PNG preview beside each Sun raster file")
     r.add_argument("--assignment-order", action="store_true",
                    help="write Sun raster pixels R,G,B as the assignment's code did (standard viewers swap red and blue)")

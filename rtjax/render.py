@@ -34,7 +34,7 @@ class Options:
     dtype: jnp.dtype  # float32 or float64
     edges: float  # the silhouette-aware mode's edge width in pixels (0: pixel centres)
     tile: int  # rays traced together
-    split: bool = False  # the silhouette mode: 2 × 2 sub-boxes in pixels whose edge lies in or at a mirror or glass
+    subdivide: bool = False  # the silhouette mode: 2 × 2 sub-boxes in pixels whose edge lies in or at a mirror or glass
 
 
 def resolve_dtype(scene: Scene, dtype) -> jnp.dtype:
@@ -75,7 +75,14 @@ def default_tile() -> int:
     return 1 << 17 if jax.default_backend() == "cpu" else 1 << 20
 
 
-def resolve_options(scene: Scene, depth, spp, dtype, edges, tile, split: bool = False) -> Options:
+def check_subdivide(edges, subdivide: bool) -> None:
+    """A clear error for `subdivide` without the silhouette-aware mode (it divides that
+    mode's boxes)."""
+    if subdivide and isinstance(edges, (int, float)) and edges == 0:
+        raise RtjaxError("subdivide needs the silhouette-aware mode (edges > 0)")
+
+
+def resolve_options(scene: Scene, depth, spp, dtype, edges, tile, subdivide: bool = False) -> Options:
     """`render`'s options checked (a clear `RtjaxError` for a bad one) and resolved;
     `render_batch` and `render_frames` share them."""
     if int(spp) < 1:
@@ -83,8 +90,9 @@ def resolve_options(scene: Scene, depth, spp, dtype, edges, tile, split: bool = 
     edges = float(edges)
     if not (0 <= edges <= MAX_EDGE_WIDTH):
         raise RtjaxError(f"edges (an edge width in pixels) must be in [0, {MAX_EDGE_WIDTH:g}], not {edges}")
+    check_subdivide(edges, subdivide)
     return Options(resolve_depth(scene.structure, depth), int(spp), resolve_dtype(scene, dtype), edges, resolve_tile(tile),
-                   bool(split))
+                   bool(subdivide))
 
 
 def render(
@@ -95,7 +103,7 @@ def render(
     dtype=None,
     edges: float = 0.0,
     tile: int | None = None,
-    split: bool = False,
+    subdivide: bool = False,
 ) -> Float[Array, "h w 3"]:
     """Render `scene` to an (H, W, 3) image in 0..255, clamped, not rounded.
 
@@ -108,17 +116,17 @@ def render(
       `edges` pixels (1 = the pixel's own box), so the image is antialiased at edges and
       its derivative includes their motion (see `rtjax.edges`). 0 (default) renders
       pixel centres. The mode is spent where edges are (`image_edges`).
-    split: with `edges`, the pixels whose edge is seen in a mirror or through glass (or
+    subdivide: with `edges`, the pixels whose edge is seen in a mirror or through glass (or
       is a mirror's or glass sphere's outline, or a shadow edge seen past one) are
       box-filtered as the mean of 2 × 2 sub-boxes, each with its own nearest edge
-      (`trace.split_boxes`): derivatives far closer to the truth inside mirrors and
+      (`trace.sub_boxes`): derivatives far closer to the truth inside mirrors and
       glass, at about twice the mode's cost (docs/EDGES.md).
     tile: rays traced together (default: 2¹⁷ on a CPU, 2²⁰ on an accelerator); the
       image does not depend on it, only speed and memory do.
 
     Differentiable in `scene.params` with jax.grad / jax.jacfwd / jax.jvp.
     """
-    options = resolve_options(scene, depth, spp, dtype, edges, tile, split)
+    options = resolve_options(scene, depth, spp, dtype, edges, tile, subdivide)
     return _render(scene.params.astype(options.dtype), scene.structure, options)
 
 
@@ -147,11 +155,11 @@ def render_image(s: Structure, p: Params, options: Options) -> Float[Array, "h w
         mode = BOX if options.edges else PLAIN
         xy = pixel_grid(s.width, s.height, offset)
         if not s.culls:
-            return colours_at(s, p, xy, step, options.depth, options.tile, mode, options.edges, split=options.split)
+            return colours_at(s, p, xy, step, options.depth, options.tile, mode, options.edges, subdivide=options.subdivide)
         # culled scenes test spheres per group of consecutive rays: trace 8×8 blocks together
         order, inverse = coherent_order(s.width, s.height)
         return colours_at(s, p, xy[:, order], step, options.depth, options.tile, mode, options.edges,
-                          split=options.split)[:, inverse]
+                          subdivide=options.subdivide)[:, inverse]
 
     image = supersample(sample, options.spp, (3, s.height * s.width), p.eye.dtype)
     return image.reshape(3, s.height, s.width).transpose(1, 2, 0)
@@ -198,7 +206,7 @@ def image_edges(s: Structure, p: Params, offset, step, options: Options, reach: 
         packed = packed.renumbered(jnp.asarray(order))
     chunk = min(options.tile, max(EDGE_CHUNK_MIN, -(-n // EDGE_CHUNKS)))
     blended = colours_at(s, p, packed.gather(xy), step, options.depth, chunk, BOX, options.edges, capacity=chunk,
-                         count=packed.count, split=options.split)
+                         count=packed.count, subdivide=options.subdivide)
     return packed.scatter(jnp.clip(colour, 0, 255), blended)
 
 
@@ -218,19 +226,19 @@ def _differentials(s: Structure, p: Params, xy, step):
 
 
 def colours_at(s: Structure, p: Params, xy, step, depth: int, tile: int, mode: Mode, width=0.0,
-               capacity: int | None = None, count=None, split: bool = False) -> Float[Array, "3 k"]:
+               capacity: int | None = None, count=None, subdivide: bool = False) -> Float[Array, "3 k"]:
     """Clamped colours (3, K) seen through image positions xy (2, K) (pixels of the
     scene's image): at their centres (`PLAIN`) or box-filtered at edges (`BOX`), the
     box `width`·`step` pixels wide (`step`: the samples' spacing in pixels).
     `capacity`: the edge pixels pass 2 takes per `tile` (`trace.trace_edges`); `count`
-    (traced): only the first `count` positions are wanted (`trace.tiled`); `split`: the
-    box mode's 2 × 2 split (`trace.trace_edges`)."""
+    (traced): only the first `count` positions are wanted (`trace.tiled`); `subdivide`:
+    the box mode's 2 × 2 sub-boxes in mirrors and glass (`trace.trace_edges`)."""
     if mode == PLAIN:
         o, d = rays_through(p.eye, p.refp, p.vang, s.width, s.height, xy)
         return jnp.clip(tiled(lambda o, d: trace(s, p, o, d, depth).colour, tile, o, d), 0, 255)
 
     def run(o, d, diff):
-        return trace_edges(s, p, o, d, diff, depth, width, BOX, capacity, split).blended
+        return trace_edges(s, p, o, d, diff, depth, width, BOX, capacity, subdivide).blended
 
     return tiled(run, tile, *_differentials(s, p, xy, step), count=count)
 
@@ -252,6 +260,7 @@ def render_samples(
     edges: float = 0.0,
     dtype=None,
     tile: int | None = None,
+    subdivide: bool = False,
 ) -> Float[Array, "k 3"]:
     """Colours (K, 3) in 0..255 seen through K image positions `xy` (K, 2), in pixels of
     the scene's image ((i + ½, j + ½) is pixel (i, j)'s centre).
@@ -259,19 +268,23 @@ def render_samples(
     A render of any subset or lattice of the image: fitting uses it to render a coarse
     grid and then a band of pixels around edges with one compiled function (K fixed;
     positions, `step` and a non-zero `edges` traced). `step` is the spacing the samples
-    stand for, in pixels: with `edges`, edges are box-filtered over `edges`·`step` pixels.
+    stand for, in pixels: with `edges`, edges are box-filtered over `edges`·`step` pixels
+    (`subdivide` as `render`'s).
     """
     dtype = resolve_dtype(scene, dtype)
     xy = check_positions(xy, dtype)
+    check_subdivide(edges, subdivide)
     mode = PLAIN if isinstance(edges, (int, float)) and edges == 0 else BOX  # a traced width means the mode is on
     out = _render_samples(scene.params.astype(dtype), xy.T, jnp.asarray(step, dtype), jnp.asarray(edges, dtype),
-                          scene.structure, resolve_depth(scene.structure, depth), resolve_tile(tile), mode)
+                          scene.structure, resolve_depth(scene.structure, depth), resolve_tile(tile), mode,
+                          bool(subdivide))
     return out.T
 
 
-@functools.partial(jax.jit, static_argnames=("structure", "depth", "tile", "mode"))
-def _render_samples(params: Params, xy, step, width, structure: Structure, depth: int, tile: int, mode: Mode):
-    return colours_at(structure, params, xy, step, depth, tile, mode, width)
+@functools.partial(jax.jit, static_argnames=("structure", "depth", "tile", "mode", "subdivide"))
+def _render_samples(params: Params, xy, step, width, structure: Structure, depth: int, tile: int, mode: Mode,
+                    subdivide: bool = False):
+    return colours_at(structure, params, xy, step, depth, tile, mode, width, subdivide=subdivide)
 
 
 def edge_samples(

@@ -359,7 +359,7 @@ def edge_capacity(n: int) -> int:
 
 
 def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth: int, width, mode: Mode,
-                capacity: int | None = None, split: bool = False) -> edges.EdgeSamples:
+                capacity: int | None = None, subdivide: bool = False) -> edges.EdgeSamples:
     """The silhouette-aware trace of each pixel (box or sided `mode`), colours clamped.
 
     Pass 1 traces the chain with ray differentials and shadow edges, and finds the one
@@ -371,15 +371,15 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
     box-filtered colour; just across the edge where it passes nearest to the centre in
     sided mode. Its cost follows the edges' length, not the image's area.
 
-    Box mode, `split` (static): the pixels whose edge is seen in or through a mirror or
-    glass sphere, or is the outline of one (`split_pixels`), are traced again as 2 × 2
-    sub-boxes (`split_boxes`), each with its own nearest edge and sides; their blend is
+    Box mode, `subdivide` (static): the pixels whose edge is seen in or through a mirror or
+    glass sphere, or is the outline of one (`subdivided_pixels`), are traced again as 2 × 2
+    sub-boxes (`sub_boxes`), each with its own nearest edge and sides; their blend is
     the mean of the four. Through a curved mirror or glass the world behind is far from
     linear across a pixel, and one straight edge a pixel misplaces its derivative.
     """
     m = prepare(s, p)
-    split = split and mode == BOX and s.needs_secondary_rays
-    watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width, curves=mode == BOX, lights=m.lights if split else None)
+    subdivide = subdivide and mode == BOX and s.needs_secondary_rays
+    watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width, curves=mode == BOX, lights=m.lights if subdivide else None)
     rays, best = _chain(s, p, m, start_rays(o, d, mode, diff), depth, mode, width, watch=watch)
     centre = jnp.clip(rays.colour, 0, 255)
     n = o.shape[1]
@@ -413,9 +413,9 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
         flipped, shadow_x = jnp.clip(rays.colour + rays.flip.delta, 0, 255), rays.flip.x
     else:
         flipped, shadow_x = centre, jnp.full((n,), jnp.inf, centre.dtype)
-        if split:
-            chosen = pack(split_pixels(s, best, width), packed.index.shape[0])
-            blended = chosen.scatter(blended, split_boxes(s, p, chosen.gather((o, d, diff)), chosen.count, depth, width))
+        if subdivide:
+            chosen = pack(subdivided_pixels(s, best, width), packed.index.shape[0])
+            blended = chosen.scatter(blended, sub_boxes(s, p, chosen.gather((o, d, diff)), chosen.count, depth, width))
     return edges.EdgeSamples(centre=centre, blended=blended,
                              inside=packed.scatter(centre, inside), outside=packed.scatter(centre, outside),
                              alpha=packed.scatter(jnp.ones_like(side.alpha, shape=(n,)), side.alpha),
@@ -423,8 +423,8 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
                              shadow_x=shadow_x)
 
 
-def split_pixels(s: Structure, best: edges.Best, width):
-    """Which pixels `trace_edges` splits into sub-boxes: those whose box (`width` sample
+def subdivided_pixels(s: Structure, best: edges.Best, width):
+    """Which pixels `trace_edges` subdivides into sub-boxes: those whose box (`width` sample
     steps) the nearest silhouette may cross (within `edges.CROSSING` boxes) where it
     lies past a mirror or glass hit (on a segment after the first) or is a mirror's or
     a glass sphere's own outline or intersection curve, and those with a shadow edge
@@ -435,12 +435,12 @@ def split_pixels(s: Structure, best: edges.Best, width):
     return (crossed & ((best.rays.level > 0) | own)) | best.shadowed
 
 
-#: `split_boxes` traces the sub-boxes of at most this many pixels together, skipping
-#: groups past the last split pixel at run time.
-SPLIT_GROUP = 1024
+#: `sub_boxes` traces the sub-boxes of at most this many pixels together, skipping
+#: groups past the last subdivided pixel at run time.
+SUB_BOX_GROUP = 1024
 
 
-def split_boxes(s: Structure, p: Params, primary, count, depth: int, width) -> Float[Array, "3 k"]:
+def sub_boxes(s: Structure, p: Params, primary, count, depth: int, width) -> Float[Array, "3 k"]:
     """Box-filtered colours (3, K) of K pixels as the mean of their 2 × 2 sub-boxes, each
     traced in box mode (its own nearest edge, its own sides); `primary` (o, d and their
     differentials per pixel), moved to the sub-boxes' centres by the differentials.
@@ -456,7 +456,7 @@ def split_boxes(s: Structure, p: Params, primary, count, depth: int, width) -> F
     moved = [edges.moved_rays(o, d, df, sx * quarter, sy * quarter) for sx, sy in offsets]
     so, sd = four([m[0] for m in moved]), four([m[1] for m in moved])
     sdiff = edges.Differentials(*(four([a / 2] * 4) for a in df))
-    group = 4 * min(k, SPLIT_GROUP)
+    group = 4 * min(k, SUB_BOX_GROUP)
 
     def run(o, d, diff):
         return trace_edges(s, p, o, d, diff, depth, width, BOX, group).blended

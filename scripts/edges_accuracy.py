@@ -4,7 +4,7 @@ J = Σ w·image (fixed random weights) by jax.jacfwd of `render(..., edges=w, dt
 against the supersampled finite differences: their cosine over the parameters, the
 median relative error, the worst parameters, and the per-pixel cosine per parameter.
 
-    python scripts/edges_accuracy.py [--edges W] [--spp K] [--split] [SCENE ...]
+    python scripts/edges_accuracy.py [--edges W] [--spp K] [--subdivide] [SCENE ...]
 """
 
 from __future__ import annotations
@@ -32,14 +32,14 @@ def main() -> None:
     ap.add_argument("scenes", nargs="*")
     ap.add_argument("--edges", type=float, default=1.0)
     ap.add_argument("--spp", type=int, default=1)
-    ap.add_argument("--split", action="store_true", help="render(..., split=True): 2 x 2 sub-boxes in mirrors and glass")
+    ap.add_argument("--subdivide", action="store_true", help="render(..., subdivide=True): 2 x 2 sub-boxes in mirrors and glass")
     args = ap.parse_args()
     for name in args.scenes or list(DECKS):
         ys = yardsticks(name)
         t = time.time()
-        image, jac = derivative_images(name, args.edges, args.spp, args.split)
+        image, jac = derivative_images(name, args.edges, args.spp, args.subdivide)
         elapsed = time.time() - t
-        print(f"== {name}  edges={args.edges} spp={args.spp} split={args.split}  ({elapsed:.0f} s)  mean |image − ss| = "
+        print(f"== {name}  edges={args.edges} spp={args.spp} subdivide={args.subdivide}  ({elapsed:.0f} s)  mean |image − ss| = "
               f"{np.abs(image - ys['image']).mean():.3f}")
         for key in [k for k in ys if k.startswith("fd")]:
             print(f"  vs {key}: " + compare(jac, ys[key], ys["names"]).summary())

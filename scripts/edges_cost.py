@@ -1,6 +1,6 @@
 """Forward cost of the silhouette-aware mode against the plain render, side by side in
 one process (alternating runs, medians): the ratio issue 21 bounds (≤ 3×); and of the
-mode with its 2 × 2 split in mirrors and glass (`render(..., split=True)`).
+mode with its 2 × 2 sub-boxes in mirrors and glass (`render(..., subdivide=True)`).
 
     python scripts/edges_cost.py [--deck scenes/ex2s3.dat] [--runs 7]
 """
@@ -25,7 +25,7 @@ def main() -> None:
     args = ap.parse_args()
     scene = rtjax.load_deck(args.deck).frames[0].scene
     fns = {"plain": lambda s: rtjax.render(s), "edges=1": lambda s: rtjax.render(s, edges=1.0),
-           "edges=1 split": lambda s: rtjax.render(s, edges=1.0, split=True)}
+           "edges=1 subdivide": lambda s: rtjax.render(s, edges=1.0, subdivide=True)}
     for fn in fns.values():
         jax.block_until_ready(fn(scene))
     times = {k: [] for k in fns}

@@ -56,16 +56,16 @@ def varied(name: str, s: rtjax.Scene):
     return at, len(params)
 
 
-def derivative_images(name: str, edges: float = 1.0, spp: int = 1, split: bool = False):
+def derivative_images(name: str, edges: float = 1.0, spp: int = 1, subdivide: bool = False):
     """The mode's image (H, W, 3) and its derivative images (P, H, W, 3) by jax.jacfwd
-    (`split`: `render(..., split=True)`)."""
+    (`subdivide`: `render(..., subdivide=True)`)."""
     s = scene(name)
     at, n = varied(name, s)
     depth = DECKS[name][1]
 
     @jax.jit
     def f(v):
-        image = rtjax.render(at(v), depth=depth, edges=edges, spp=spp, split=split)
+        image = rtjax.render(at(v), depth=depth, edges=edges, spp=spp, subdivide=subdivide)
         return image, image
 
     jac, image = jax.jacfwd(f, has_aux=True)(jnp.zeros(n, jnp.float64))
