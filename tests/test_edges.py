@@ -470,6 +470,21 @@ def test_whole_image_is_every_pixel_traced_in_the_mode(name):
 
 
 @pytest.mark.slow
+def test_whole_image_with_sub_boxes_is_every_pixel_traced_in_the_mode():
+    """The same with the 2 × 2 sub-boxes in mirrors and glass (`subdivide`): the
+    whole image's chunks subdivide the pixels that every pixel's trace does, and the
+    sub-boxes change the glass scene's image."""
+    s = big("glass")
+    depth = DECKS["glass"][1]
+    with quick_xla(clear=True):  # an agreement of two programs, not bits; the compile is what costs
+        whole = np.asarray(rtjax.render(s, depth=depth, edges=WIDTH, subdivide=True)).reshape(-1, 3)
+        every = np.asarray(rtjax.render_samples(s, _pixel_centres(s), depth=depth, edges=WIDTH, subdivide=True))
+        one_box = np.asarray(rtjax.render_samples(s, _pixel_centres(s), depth=depth, edges=WIDTH))
+    np.testing.assert_allclose(whole, every, rtol=0, atol=1e-9)
+    assert np.abs(every - one_box).max() > 0.5  # measured 0.99
+
+
+@pytest.mark.slow
 def test_whole_image_derivatives_are_every_pixel_traced_in_the_mode():
     """The shadow scene at 96 × 96: the Jacobian of the image with respect to the
     occluder's centre and radius (jacfwd) equals that of the mode traced at every pixel,
