@@ -113,7 +113,9 @@ def _start_distributed(args) -> None:
 
 def cmd_render(args) -> int:
     from .deck import load_deck
+    from .render import check_subdivide
 
+    check_subdivide(args.edges, args.subdivide)  # before the deck is read: a usage error
     deck = load_deck(args.deck)
     if not deck.frames:
         raise DeckError(deck.path, None, "the deck has no rend line: nothing to render")

@@ -330,11 +330,14 @@ def test_edges_reaches_the_renderer(tmp_path, capsys, monkeypatch):
 
     calls = []
 
-    def with_edges(scene, *, depth=None, spp=1, dtype=None, edges=0.0):
-        calls.append((edges, spp))
+    def with_edges(scene, *, depth=None, spp=1, dtype=None, edges=0.0, subdivide=False):
+        calls.append((edges, spp, subdivide))
         return jnp.zeros((scene.structure.height, scene.structure.width, 3))
 
     deck = write_deck(tmp_path, SMALL + "rend a.ras\n")
     monkeypatch.setattr(rtjax.batch, "render", with_edges)
     assert render_main(capsys, deck, "-o", tmp_path / "out", "--edges", "1.5", "--spp", "2")[0] == 0
-    assert calls == [(1.5, 2)]
+    assert render_main(capsys, deck, "-o", tmp_path / "out", "--edges", "1", "--subdivide")[0] == 0
+    assert calls == [(1.5, 2, False), (1.0, 1, True)]
+    code, _, err = render_main(capsys, deck, "-o", tmp_path / "out", "--subdivide")
+    assert code != 0 and "subdivide needs the silhouette-aware mode" in err, err
