@@ -118,6 +118,20 @@ def test_a_sweep_in_the_silhouette_mode_equals_render():
         assert np.array_equal(image, np.asarray(rtjax.render(scene.replace(ke=k), edges=1.0)))
 
 
+@pytest.mark.slow
+def test_a_sweep_with_sub_boxes_equals_render():
+    """`subdivide` reaches the batched render: each frame equals `render`'s with its
+    2 × 2 sub-boxes in the mirror, bit for bit (and they change the image)."""
+    mirror = SMALL.replace("opaq 0 0.5 1 0 1", "mirr") + "rend a.ras\n"
+    scene = rtjax.parse_deck(mirror).frames[0].scene.resized(24)
+    kes = np.array([0.1, 0.6], np.float32)
+    params = rtjax.stack_params([scene.replace(ke=k).params for k in kes])
+    images = np.asarray(rtjax.render_batch(scene.structure, params, edges=1.0, subdivide=True, mode="map"))
+    for k, image in zip(kes, images):
+        assert np.array_equal(image, np.asarray(rtjax.render(scene.replace(ke=k), edges=1.0, subdivide=True)))
+    assert np.abs(images[0] - np.asarray(rtjax.render(scene.replace(ke=kes[0]), edges=1.0))).max() > 0.5
+
+
 def test_batches_are_cut_to_bound_memory():
     s = rtjax.parse_deck(SMALL + "rend a.ras\n").frames[0].scene.structure
     assert [len(c) for c in batch.batch_chunks(s, 10, batch=4)] == [4, 4, 2]
