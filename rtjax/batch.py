@@ -259,9 +259,9 @@ def render_batch(
     """Images (F, H, W, 3) of F frames of one structure in one jit-compiled call:
     `params` has a leading frame axis on every leaf (`stack_params`, or a sweep built
     with `jax.vmap`/`jnp.linspace`). Each image equals `rtjax.render` of that frame
-    bit for bit. Options as `rtjax.render` (`subdivide` too); `devices` (None: one; an int; "all"; a
-    list of devices) shards the work: `split` "pixels", "frames", or "auto" (frames
-    when there are at least as many frames as devices, else pixels).
+    bit for bit. Options as `rtjax.render`; `devices` (None: one; an int; "all"; a list
+    of devices) shards the work: `split` "pixels", "frames", or "auto" (frames when
+    there are at least as many frames as devices, else pixels).
 
     mode: how a device takes its frames within the call: "vmap" (all at once, one
     vectorised program: what an accelerator wants), "map" (one after another,
