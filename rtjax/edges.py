@@ -36,6 +36,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax.ad_checkpoint import checkpoint_name
 from jaxtyping import Array, Bool, Float, Int
 
 from . import curves, spheres
@@ -203,7 +204,7 @@ def _nearest(score):
     CPU backend runs a min over the leading axis much slower than argmin.)"""
     idx = jnp.argmin(score, axis=0)
     best = jnp.take_along_axis(score, idx[None], axis=0)[0]
-    return jnp.where(jnp.isfinite(best), idx, -1).astype(jnp.int32)
+    return checkpoint_name(jnp.where(jnp.isfinite(best), idx, -1).astype(jnp.int32), spheres.CHOICE)
 
 
 class Flip(NamedTuple):
@@ -382,7 +383,7 @@ class EdgeWatch:
             nearer = cscore < score
             here = Best(jnp.where(nearer, cscore, score), jnp.where(nearer, cedge, edge), here.on_hit & ~nearer, rays,
                         jnp.where(nearer, hit.index, -1))
-        better = here.score < best.score
+        better = checkpoint_name(here.score < best.score, spheres.CHOICE)
         chosen = jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), here._replace(shadowed=None),
                                         best._replace(shadowed=None))
         if self.lights is None:

@@ -24,6 +24,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.ad_checkpoint import checkpoint_name
 from jaxtyping import Array, Bool, Float, Int
 
 from .compact import pack
@@ -159,6 +160,31 @@ def nearest(o, d, centers, radii, origin: Int[Array, " p"], tmin, cull: bool, ex
     return jnp.abs(t), idx, t < 0
 
 
+def narrowest(n: int):
+    """The narrowest signed integer dtype that holds ±(n + 1) (static)."""
+    for dtype in (jnp.int8, jnp.int16):
+        if n + 1 <= jnp.iinfo(dtype).max:
+            return dtype
+    return jnp.int32
+
+
+def keep_hit(best, idx, far, n: int):
+    """(found, idx, far) of `nearest`, passed through one narrow code per ray named
+    `CHOICE` (±(idx + 1), negative at a far root, 0: no hit): what reverse mode keeps
+    of the choice instead of every ray against every sphere. Without a hit, idx is 0."""
+    found = jnp.isfinite(best)
+    code = checkpoint_name(jnp.where(found, jnp.where(far, -(idx + 1), idx + 1), 0).astype(narrowest(n)), CHOICE)
+    return code != 0, jnp.maximum(jnp.abs(code).astype(jnp.int32) - 1, 0), code < 0
+
+
+def keep_blocked(blocked):
+    """A (N, P) mask passed through its bits packed along N (one byte per 8 spheres and
+    ray) named `CHOICE`: what reverse mode keeps of which spheres block each shadow ray."""
+    n = blocked.shape[0]
+    word = checkpoint_name(jnp.packbits(blocked, axis=0), CHOICE)
+    return jnp.unpackbits(word, axis=0, count=n).astype(bool)
+
+
 def sphere_geometry(o, d, c, r):
     """Per ray, for one given sphere each: b, l (3, P), √disc (with a capped slope)."""
     _, b, l = offsets(o, d, c)
@@ -215,8 +241,8 @@ def nearest_hit(o, d, centers, radii, origin, tmin, cull: bool, toggles: Toggles
     """
     tab = None if cull else table(o, d, centers)
     exclude = None if toggles is None else toggles.exclude
-    best, idx, far = nearest(o, d, centers, radii, origin, tmin, cull, exclude, active, tab)
-    found = jnp.isfinite(best)
+    found, idx, far = keep_hit(*nearest(o, d, centers, radii, origin, tmin, cull, exclude, active, tab),
+                               centers.shape[0])
     if toggles is not None:
         forced = (toggles.force >= 0) & (~found | (idx != toggles.force))
         found, idx, far = found | forced, jnp.where(forced, toggles.force, idx), far & ~forced
@@ -253,7 +279,7 @@ def transmission(o, d, centers, radii, origin, tmin, opacity_factor, skip=None, 
     _, blocked, _, _ = table_roots(table(o, d, centers) if tab is None else tab, radii, origin, tmin)
     if skip is not None:
         blocked = blocked & others(skip, centers.shape[0])
-    factor = jnp.where(blocked, opacity_factor[:, None], 1)
+    factor = jnp.where(keep_blocked(blocked), opacity_factor[:, None], 1)
     return jnp.prod(factor, axis=0)
 
 
@@ -288,6 +314,10 @@ def transmission(o, d, centers, radii, origin, tmin, opacity_factor, skip=None, 
 # Slack against rounding: radii grow by a relative `_RADIUS_SLACK` plus `tmin`, cones
 # by `_ANGLE_SLACK` radians.
 
+#: The name (`jax.ad_checkpoint.checkpoint_name`) of the discrete choices a segment makes
+#: (which sphere each ray meets, which spheres block each shadow ray): reverse mode keeps
+#: them rather than recomputing every ray against every sphere (`trace._chain`).
+CHOICE = "choice"
 #: Scenes with at most this many spheres test every ray against every sphere (the
 #: fast path for small scenes); larger ones cull (`Structure.culls`).
 CULL_ABOVE = 32
@@ -521,7 +551,7 @@ def culled_transmission(o, grid: LightGrid, centers, radii, origin, tmin, factor
 
     def listed(_):
         order, chunks = _packed(active, p)
-        bits = _chunk_loop(order, chunks, p, body, jnp.zeros((p,), jnp.uint32))
+        bits = checkpoint_name(_chunk_loop(order, chunks, p, body, jnp.zeros((p,), jnp.uint32)), CHOICE)
         blocked = (bits[:, None] & bit) != 0  # (P, K)
         return jnp.prod(jnp.where(blocked, factor[grid.cand][cells], 1), axis=1)
 

@@ -257,6 +257,12 @@ def tiers(n: int) -> tuple[int, ...]:
     return (n, small) if small >= TIER_MIN else (n,)
 
 
+#: What reverse mode keeps of a segment besides its input: the discrete choices it made
+#: (`spheres.CHOICE`: spheres met, shadow rays blocked, edges chosen), so that the
+#: recomputation does not test every ray against every sphere again.
+KEEP = jax.checkpoint_policies.save_only_these_names(spheres.CHOICE)
+
+
 def _chain(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: Mode, width=0.0,
            toggles: spheres.Toggles | None = None, watch: edges.EdgeWatch | None = None):
     """Segments until `rays.level` passes `depth`: one `lax.scan` body (compiled once,
@@ -297,7 +303,7 @@ def _chain(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: M
         tg = tg if tg is None or tg.level is not None else spheres.Toggles.off(tg.exclude)  # None: none carried
         return r2, tg, (b if watch is None else watch(r, h, b))
 
-    segment_kept = jax.checkpoint(run, prevent_cse=False)
+    segment_kept = jax.checkpoint(run, prevent_cse=False, policy=KEEP)
 
     def gather(c):
         """One segment; without a fold, the colour gathered so far is added after the
