@@ -2,9 +2,9 @@
 in one run on the sample deck (400×294, float32, depth 10):
 
 compile time and median forward time, plain and silhouette-aware; reverse gradient
-(jax.grad of the mean image w.r.t. all parameters) and jacfwd w.r.t. the 24 centre
-coordinates, each as a ratio to the plain forward time of the same run and to the
-forward time of its own mode; and the reverse gradient's peak temporary memory at each
+(jax.grad of the mean image w.r.t. all parameters, timed in turn with the forward
+render, round by round) and jacfwd w.r.t. the 24 centre coordinates, each as a ratio
+to the plain forward time of the same run and to the forward time of its own mode; and the reverse gradient's peak temporary memory at each
 of `--depths` (XLA's compiled memory analysis), per mode.
 
   python scripts/timings.py [--runs 5] [--deck scenes/ex2s3.dat] [--depths 0 2 10]
@@ -24,16 +24,22 @@ import rtjax
 rtjax.tune_cpu()  # before any JAX computation (rtjax.xla)
 
 
-def timed(fn, *args, runs: int):
-    t = time.perf_counter()
-    jax.block_until_ready(fn(*args))
-    first = time.perf_counter() - t
-    times = []
-    for _ in range(runs):
+def timed(calls, runs: int):
+    """Compile time and median run time of each (fn, args) in `calls`, run in turn in
+    each of `runs` rounds (interleaved, so that a slow spell of the machine slows all
+    of them alike: their ratios are what is quoted)."""
+    first = []
+    for fn, args in calls:
         t = time.perf_counter()
         jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t)
-    return first - statistics.median(times), statistics.median(times)
+        first.append(time.perf_counter() - t)
+    times = [[] for _ in calls]
+    for _ in range(runs):
+        for (fn, args), out in zip(calls, times):
+            t = time.perf_counter()
+            jax.block_until_ready(fn(*args))
+            out.append(time.perf_counter() - t)
+    return [(f - statistics.median(ts), statistics.median(ts)) for f, ts in zip(first, times)]
 
 
 def main() -> None:
@@ -56,10 +62,9 @@ def main() -> None:
         fwd = jax.jit(image)
         grad = jax.jit(jax.grad(lambda p: jnp.mean(image(p))))
         jac = jax.jit(jax.jacfwd(image_c))
-        c_f, t_f = timed(fwd, scene.params, runs=args.runs)
+        (c_f, t_f), (c_g, t_g) = timed([(fwd, (scene.params,)), (grad, (scene.params,))], runs=args.runs)
         base = base or t_f
-        c_g, t_g = timed(grad, scene.params, runs=args.runs)
-        c_j, t_j = timed(jac, scene.params.centers, runs=max(1, args.runs // 2))
+        ((c_j, t_j),) = timed([(jac, (scene.params.centers,))], runs=max(1, args.runs // 2))
         mode = "silhouette-aware (edges=1)" if edges else "plain"
         memory = []
         for depth in args.depths:
