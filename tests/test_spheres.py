@@ -1,5 +1,6 @@
 """Ray–sphere intersection (rtjax/spheres.py): culling of large scenes answers as testing
-every ray against every sphere does, for hits, shadows, images and derivatives."""
+every ray against every sphere does, for hits, shadows, images and derivatives; the
+choices reverse mode keeps decode to what was chosen."""
 
 from __future__ import annotations
 
@@ -11,7 +12,56 @@ import numpy as np
 import pytest
 
 import rtjax
-from rtjax import bench, spheres
+from rtjax import bench, spheres, trace
+
+
+# -- the choices reverse mode keeps ---------------------------------------------------------
+
+
+@pytest.mark.parametrize("n", [1, 8, 126, 127, 1000, 40000])
+def test_kept_hit_decodes_to_the_choice(n):
+    """`keep_hit`'s narrow code gives back found, index and root for every index a scene
+    of n spheres has (int8 up to 126, then int16, then int32), and index 0 without a hit."""
+    rng = np.random.default_rng(n)
+    idx = np.concatenate([[0, n - 1], rng.integers(0, n, 500)]).astype(np.int32)
+    far = rng.uniform(size=idx.size) < 0.5
+    best = np.where(rng.uniform(size=idx.size) < 0.7, rng.uniform(0.1, 9, idx.size), np.inf)
+    best[:2] = 1.0
+    found, got, got_far = (np.asarray(a) for a in spheres.keep_hit(jnp.asarray(best), jnp.asarray(idx),
+                                                                    jnp.asarray(far), n))
+    assert jnp.dtype(spheres.narrowest(n)).itemsize == (1 if n <= 126 else 2 if n <= 32766 else 4)
+    np.testing.assert_array_equal(found, np.isfinite(best))
+    np.testing.assert_array_equal(got, np.where(found, idx, 0))
+    np.testing.assert_array_equal(got_far, far & found)
+
+
+@pytest.mark.parametrize("n", [1, 7, 8, 9, 17, 32, 150])
+def test_kept_blockers_decode_to_the_mask(n):
+    """`keep_blocked` packs a (N, P) mask into bytes and unpacks it exactly, N not a
+    multiple of 8 included."""
+    mask = np.random.default_rng(n).uniform(size=(n, 300)) < 0.3
+    np.testing.assert_array_equal(np.asarray(spheres.keep_blocked(jnp.asarray(mask))), mask)
+
+
+def test_reverse_mode_keeps_the_choices_not_the_tables(capsys):
+    """The segments' checkpoint policy (`trace.KEEP`) keeps the named choices: a hit and
+    its shadow ray differentiated through it save the narrow hit code and the packed
+    blockers as residuals, and no (N, P) ray–sphere table."""
+    o = jnp.zeros((3, 12))
+    d = jnp.broadcast_to(jnp.array([0.0, 0.0, 1.0])[:, None], (3, 12))
+    radii = jnp.ones(5)
+
+    def f(centers):
+        hit = spheres.nearest_hit(o, d, centers, radii, jnp.full(12, -1), 1e-4, False)
+        vis = spheres.transmission(hit.point, d, centers, radii, hit.index, 1e-4, jnp.full(5, 0.25))
+        return jnp.sum(hit.t * vis)
+
+    centers = jnp.asarray(np.random.default_rng(0).normal(size=(5, 3)) + [0, 0, 5])
+    jax.ad_checkpoint.print_saved_residuals(jax.checkpoint(f, policy=trace.KEEP), centers)
+    saved = capsys.readouterr().out
+    assert "i8[12] named 'choice'" in saved  # the hit code
+    assert "u8[1,12] named 'choice'" in saved  # five blockers in one byte per ray
+    assert "[5,12]" not in saved  # no ray–sphere table
 
 
 # -- culling ---------------------------------------------------------------------------------
