@@ -231,6 +231,7 @@ class Shadow(NamedTuple):
     here: Float[Array, " p"]  # at the pixel: box-filtered (box mode) or at its centre (sided mode)
     there: Float[Array, " p"]  # sided mode: had the centre lain across its nearest shadow edge (else `here`)
     x: Float[Array, " p"]  # sided mode: the centre's distance to that edge in box widths (inf: none)
+    near: Bool[Array, " p"]  # that edge may cross the hit's box (within `CROSSING` boxes)
 
 
 def shadow_edge(hit: spheres.Hit, light, centers, radii, tmin, motion: Motion, width, tab: spheres.Table):
@@ -270,14 +271,15 @@ def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, motion: M
     hard = spheres.transmission(hit.point, ray, centers, radii, hit.index, tmin, factor, skip=edge, tab=tab)
     # |δ| ≥ width (a candidate only by the bound): α is 0 or 1, the hard factor exactly
     blocked = 1 - factor[jnp.maximum(edge, 0)]
+    near = (edge >= 0) & (jnp.abs(sg(delta_e)) < CROSSING * width)
     if sided:
         inside = sg(delta_e) < 0
         reached = (edge >= 0) & (jnp.abs(sg(delta_e)) < width)
         here = jnp.where(edge >= 0, 1 - blocked * inside, 1)
         there = jnp.where(reached, 1 - blocked * ~inside, here)
-        return Shadow(hard * here, hard * there, jnp.where(reached, jnp.abs(delta_e) / width, jnp.inf))
+        return Shadow(hard * here, hard * there, jnp.where(reached, jnp.abs(delta_e) / width, jnp.inf), near)
     soft = hard * jnp.where(edge >= 0, 1 - blocked * coverage(-delta_e / width, nx, ny), 1)
-    return Shadow(soft, soft, jnp.full_like(soft, jnp.inf))
+    return Shadow(soft, soft, jnp.full_like(soft, jnp.inf), near)
 
 
 def edge_pixels(keys: Int[Array, "h+2r w+2r"], reach: int) -> Bool[Array, "h w"]:
@@ -317,37 +319,25 @@ class EdgeWatch:
     to its ray. Visible: the segment's ray meets that sphere first, from outside; or it
     misses it and passes closest to it in front of whatever it meets. `curves`: also
     the intersection curves of spheres cutting into the one a ray meets
-    (`curves.nearest_curve`), where they are nearer. `lights` (unit vectors): also
-    whether a shadow edge lies within reach of a hit past the first segment (seen in a
-    mirror or through glass; `Best.shadowed`)."""
+    (`curves.nearest_curve`), where they are nearer. `shadows`: also whether a shadow
+    edge lies within reach of a hit past the first segment (seen in a mirror or through
+    glass; `Best.shadowed`), as the segment's shading found it."""
 
-    def __init__(self, centers, radii, tmin, width: float, curves: bool = False, lights=None):
+    def __init__(self, centers, radii, tmin, width: float, curves: bool = False, shadows: bool = False):
         self.centers, self.radii, self.tmin, self.width, self.curves = centers, radii, tmin, width, curves
-        self.lights = lights
+        self.shadows = shadows
 
     def empty(self, rays) -> Best:
         """No edge found yet (the fold's start)."""
         n = rays.weight.shape
         none = jnp.full(n, -1, jnp.int32)
-        shadowed = None if self.lights is None else jnp.zeros(n, bool)
+        shadowed = jnp.zeros(n, bool) if self.shadows else None
         return Best(jnp.full(n, jnp.inf, rays.o.dtype), none, jnp.zeros(n, bool), rays, none, shadowed)
 
-    def shadowed(self, rays, hit: spheres.Hit) -> Bool[Array, " p"]:
-        """Whether any light's shadow edge may cross the box of this segment's hits
-        (within `CROSSING` boxes), on the segments past the first."""
-        sg = jax.lax.stop_gradient
-        hit = sg(hit)
-        motion = hit_motion(hit, rays.o, rays.d, sg(rays.diff))
-        near = jnp.zeros(hit.found.shape, bool)
-        for light in sg(self.lights):
-            tab = spheres.light_table(hit.point, light, self.centers)
-            edge, delta, _, _ = shadow_edge(hit, light, sg(self.centers), sg(self.radii), self.tmin, motion,
-                                            self.width, tab)
-            near = near | ((edge >= 0) & (jnp.abs(delta) < CROSSING * self.width))
-        return near & hit.found & (rays.weight > 0) & (rays.level > 0)
-
-    def __call__(self, rays, hit: spheres.Hit, best: Best) -> Best:
-        """`best` with this segment's nearest visible silhouette where it is nearer."""
+    def __call__(self, rays, hit: spheres.Hit, best: Best, near_shadow=None) -> Best:
+        """`best` with this segment's nearest visible silhouette where it is nearer;
+        `near_shadow` (with `shadows`): per hit, whether the shading found a light's shadow
+        edge within `CROSSING` boxes of it (`Shade.near`)."""
         n = self.centers.shape[0]
         tab = spheres.table(rays.o, rays.d, self.centers) if hit.table is None else hit.table
         sg = jax.lax.stop_gradient
@@ -386,9 +376,10 @@ class EdgeWatch:
         better = checkpoint_name(here.score < best.score, spheres.CHOICE)
         chosen = jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), here._replace(shadowed=None),
                                         best._replace(shadowed=None))
-        if self.lights is None:
+        if not self.shadows:
             return chosen
-        return chosen._replace(shadowed=best.shadowed | self.shadowed(rays, hit))
+        past = near_shadow & hit.found & (rays.weight > 0) & (rays.level > 0)  # seen in a mirror or through glass
+        return chosen._replace(shadowed=best.shadowed | past)
 
 
 class Sides(NamedTuple):

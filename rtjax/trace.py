@@ -23,7 +23,7 @@ from typing import Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int, UInt
+from jaxtyping import Array, Bool, Float, Int, UInt
 
 from . import edges, spheres
 from .compact import pack
@@ -80,6 +80,7 @@ class Shade(NamedTuple):
     colour: Float[Array, "3 p"]
     visibility: tuple[Float[Array, " p"], ...]  # per light: hard, or box-filtered in box mode
     flip: "edges.Flip | None"  # sided mode: the nearest shadow edge over the lights
+    near: "Bool[Array, ' p'] | None"  # box and sided modes: some light's shadow edge may cross the hit's box
 
 
 def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, mode: Mode,
@@ -92,8 +93,9 @@ def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, mode
     """
     total = jnp.zeros_like(n)
     flip = edges.Flip.none(n[0]) if mode == SIDED else None
+    near = None if mode == PLAIN else jnp.zeros(n.shape[1:], bool)
     if s.n_lights == 0:
-        return Shade(total, (), flip)
+        return Shade(total, (), flip, near)
     idx = jnp.maximum(hit.index, 0)
     d = surface_colour(s, p, m, idx, hit.normal_out)
     ks, beta = m.ks[idx], m.beta[idx]
@@ -107,13 +109,13 @@ def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, mode
         else:
             shadow = edges.soft_shadow(hit, light, p.centers, p.radii, m.tmin, m.shadow_factor, motion, width,
                                        sided=mode == SIDED)
-            vis = shadow.here
+            vis, near = shadow.here, near | shadow.near
         term = local_light(d, ks, beta, p.ke, nl, cos_g, vis, colour)
         if mode == SIDED:
             flip = flip.nearer(edges.Flip(shadow.x, local_light(d, ks, beta, p.ke, nl, cos_g, shadow.there, colour) - term))
         total = total + term
         visible.append(vis)
-    return Shade(total, tuple(visible), flip)
+    return Shade(total, tuple(visible), flip, near)
 
 
 #: FNV-1a's 32-bit prime, which mixes each hit into a ray's `Rays.key`, and its offset basis.
@@ -196,13 +198,13 @@ def start_rays(o, d, mode: Mode, diff: edges.Differentials | None = None, keyed:
 
 
 def segment(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: Mode, width=0.0,
-            toggles: spheres.Toggles | None = None) -> tuple[Rays, spheres.Hit]:
+            toggles: spheres.Toggles | None = None) -> tuple[Rays, spheres.Hit, Shade]:
     """One segment of the chain for every ray: hit, local light, the next ray.
 
     In box and sided modes the rays carry their differentials, which follow them
     through reflections and refractions and place each hit's nearest shadow edge
     (`width` sample steps wide); `toggles` alter this segment's hits (the silhouette
-    mode's second pass). Returns the next rays and this segment's hit.
+    mode's second pass). Returns the next rays, this segment's hit and its local light.
     """
     o, d = rays.o, rays.d
     active = rays.weight > 0
@@ -219,7 +221,7 @@ def segment(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: 
         flip = flip.nearer(edges.Flip(jnp.where(seen, shade.flip.x, jnp.inf), rays.weight * shade.flip.delta))
     colour = rays.colour + spread(rays.weight) * jnp.where(hit.found, shade.colour, p.background[:, None])
     if not s.needs_secondary_rays:
-        return rays._replace(weight=jnp.zeros_like(rays.weight), colour=colour, flip=flip, key=key), hit
+        return rays._replace(weight=jnp.zeros_like(rays.weight), colour=colour, flip=flip, key=key), hit, shade
     idx = jnp.maximum(hit.index, 0)
     alive = hit.found & jnp.asarray(s.mask(MIRROR, GLASS))[idx] & (rays.level < depth)
     glass = jnp.asarray(s.mask(GLASS))[idx]
@@ -240,7 +242,7 @@ def segment(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: 
         outs = [jax.jvp(turn, (sg(d), sg(n)), (dd, sign * dp))[1] for dd, dp in ((rays.diff.dx, motion.x),
                                                                                   (rays.diff.dy, motion.y))]
         new_diff = edges.Differentials(*sg((motion.x, outs[0], motion.y, outs[1])))
-    return Rays(hit.point, new_d, hit.index, weight, colour, rays.level + 1, flip, key, new_diff), hit
+    return Rays(hit.point, new_d, hit.index, weight, colour, rays.level + 1, flip, key, new_diff), hit, shade
 
 
 #: Rays per tier of the chain: after each tier, the rays still alive are packed into the
@@ -290,8 +292,8 @@ def _chain(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: M
     traced on there and scattered back (`compact.pack`). Each ray meets the same
     arithmetic either way; the image is the same."""
     if not s.needs_secondary_rays:
-        rays2, hit = segment(s, p, m, rays, depth, mode, width, toggles)
-        return rays2, None if watch is None else watch(rays, hit, watch.empty(rays))
+        rays2, hit, shade = segment(s, p, m, rays, depth, mode, width, toggles)
+        return rays2, None if watch is None else watch(rays, hit, watch.empty(rays), shade.near)
     best = None if watch is None else watch.empty(rays)
     sizes = tiers(rays.weight.shape[0])
 
@@ -299,9 +301,9 @@ def _chain(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: M
         r, tg, b = c
         if watch is None:  # the colour gathered so far stays outside (`gather`)
             r = r._replace(colour=jnp.zeros_like(r.o))
-        r2, h = segment(s, p, m, r, depth, mode, width, tg)
+        r2, h, shade = segment(s, p, m, r, depth, mode, width, tg)
         tg = tg if tg is None or tg.level is not None else spheres.Toggles.off(tg.exclude)  # None: none carried
-        return r2, tg, (b if watch is None else watch(r, h, b))
+        return r2, tg, (b if watch is None else watch(r, h, b, shade.near))
 
     segment_kept = jax.checkpoint(run, prevent_cse=False, policy=KEEP)
 
@@ -385,7 +387,7 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
     """
     m = prepare(s, p)
     subdivide = subdivide and mode == BOX and s.needs_secondary_rays
-    watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width, curves=mode == BOX, lights=m.lights if subdivide else None)
+    watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width, curves=mode == BOX, shadows=subdivide)
     rays, best = _chain(s, p, m, start_rays(o, d, mode, diff), depth, mode, width, watch=watch)
     centre = jnp.clip(rays.colour, 0, 255)
     n = o.shape[1]
