@@ -271,10 +271,11 @@ def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, motion: M
     hard = spheres.transmission(hit.point, ray, centers, radii, hit.index, tmin, factor, skip=edge, tab=tab)
     # |δ| ≥ width (a candidate only by the bound): α is 0 or 1, the hard factor exactly
     blocked = 1 - factor[jnp.maximum(edge, 0)]
-    near = (edge >= 0) & (jnp.abs(sg(delta_e)) < CROSSING * width)
+    gap = jnp.abs(sg(delta_e))
+    near = (edge >= 0) & (gap < CROSSING * width)
     if sided:
         inside = sg(delta_e) < 0
-        reached = (edge >= 0) & (jnp.abs(sg(delta_e)) < width)
+        reached = (edge >= 0) & (gap < width)
         here = jnp.where(edge >= 0, 1 - blocked * inside, 1)
         there = jnp.where(reached, 1 - blocked * ~inside, here)
         return Shadow(hard * here, hard * there, jnp.where(reached, jnp.abs(delta_e) / width, jnp.inf), near)

@@ -4,8 +4,9 @@ in one run on the sample deck (400×294, float32, depth 10):
 compile time and median forward time, plain and silhouette-aware; reverse gradient
 (jax.grad of the mean image w.r.t. all parameters, timed in turn with the forward
 render, round by round) and jacfwd w.r.t. the 24 centre coordinates, each as a ratio
-to the plain forward time of the same run and to the forward time of its own mode; and the reverse gradient's peak temporary memory at each
-of `--depths` (XLA's compiled memory analysis), per mode.
+to the plain forward time of the same run and to the forward time of its own mode;
+and the reverse gradient's peak temporary memory at each of `--depths` (XLA's
+compiled memory analysis), per mode.
 
   python scripts/timings.py [--runs 5] [--deck scenes/ex2s3.dat] [--depths 0 2 10]
 """
