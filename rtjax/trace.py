@@ -381,17 +381,39 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
 
     Box mode, `subdivide` (static): the pixels whose edge is seen in or through a mirror or
     glass sphere, or is the outline of one (`subdivided_pixels`), are traced again as 2 × 2
-    sub-boxes (`sub_boxes`), each with its own nearest edge and sides; their blend is
+    sub-boxes (`_subdivided`), each with its own nearest edge and sides; their blend is
     the mean of the four. Through a curved mirror or glass the world behind is far from
     linear across a pixel, and one straight edge a pixel misplaces its derivative.
     """
+    n = o.shape[1]
+    capacity = edge_capacity(n) if capacity is None else min(n, capacity)
+    if subdivide and mode == BOX and s.needs_secondary_rays:
+        return _subdivided(s, p, (o, d, diff), depth, width, capacity)
+    return _edge_pass(s, p, (o, d, diff), depth, width, mode, capacity).samples
+
+
+class EdgePass(NamedTuple):
+    """What one silhouette-aware pass over a batch of rays gives (`_edge_pass`)."""
+
+    samples: edges.EdgeSamples
+    subdivided: "Bool[Array, ' p'] | None"  # box mode with `subdivided`: `subdivided_pixels`
+
+
+def _edge_pass(s: Structure, p: Params, primary, depth: int, width, mode: Mode, capacity: int, live=None,
+               subdivided: bool = False) -> EdgePass:
+    """Passes 1 and 2 of `trace_edges` over the rays `primary` (o, d, differentials);
+    `live` (traced): only the first `live` of them are wanted (the rest start ended);
+    `subdivided` (static, box mode): which pixels want sub-boxes too."""
+    o, d, diff = primary
     m = prepare(s, p)
-    subdivide = subdivide and mode == BOX and s.needs_secondary_rays
-    watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width, curves=mode == BOX, shadows=subdivide)
-    rays, best = _chain(s, p, m, start_rays(o, d, mode, diff), depth, mode, width, watch=watch)
+    watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width, curves=mode == BOX, shadows=subdivided)
+    first = start_rays(o, d, mode, diff)
+    if live is not None:
+        first = first._replace(weight=jnp.where(jnp.arange(o.shape[1]) < live, first.weight, 0))
+    rays, best = _chain(s, p, m, first, depth, mode, width, watch=watch)
     centre = jnp.clip(rays.colour, 0, 255)
     n = o.shape[1]
-    packed = pack(best.edge >= 0, edge_capacity(n) if capacity is None else min(n, capacity))
+    packed = pack(best.edge >= 0, capacity)
     b = packed.gather(best)
     r0 = b.rays
 
@@ -421,14 +443,12 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
         flipped, shadow_x = jnp.clip(rays.colour + rays.flip.delta, 0, 255), rays.flip.x
     else:
         flipped, shadow_x = centre, jnp.full((n,), jnp.inf, centre.dtype)
-        if subdivide:
-            chosen = pack(subdivided_pixels(s, best, width), packed.index.shape[0])
-            blended = chosen.scatter(blended, sub_boxes(s, p, chosen.gather((o, d, diff)), chosen.count, depth, width))
-    return edges.EdgeSamples(centre=centre, blended=blended,
-                             inside=packed.scatter(centre, inside), outside=packed.scatter(centre, outside),
-                             alpha=packed.scatter(jnp.ones_like(side.alpha, shape=(n,)), side.alpha),
-                             x=packed.scatter(jnp.zeros_like(side.x, shape=(n,)), side.x), flipped=flipped,
-                             shadow_x=shadow_x)
+    samples = edges.EdgeSamples(centre=centre, blended=blended,
+                                inside=packed.scatter(centre, inside), outside=packed.scatter(centre, outside),
+                                alpha=packed.scatter(jnp.ones_like(side.alpha, shape=(n,)), side.alpha),
+                                x=packed.scatter(jnp.zeros_like(side.x, shape=(n,)), side.x), flipped=flipped,
+                                shadow_x=shadow_x)
+    return EdgePass(samples, subdivided_pixels(s, best, width) if subdivided else None)
 
 
 def subdivided_pixels(s: Structure, best: edges.Best, width):
@@ -443,34 +463,62 @@ def subdivided_pixels(s: Structure, best: edges.Best, width):
     return (crossed & ((best.rays.level > 0) | own)) | best.shadowed
 
 
-#: `sub_boxes` traces the sub-boxes of at most this many pixels together, skipping
-#: groups past the last subdivided pixel at run time.
-SUB_BOX_GROUP = 1024
+#: A pixel's 2 × 2 sub-boxes: their centres' offsets from its centre, in quarter boxes.
+SUB_BOX_OFFSETS = ((-1, -1), (1, -1), (-1, 1), (1, 1))
 
 
-def sub_boxes(s: Structure, p: Params, primary, count, depth: int, width) -> Float[Array, "3 k"]:
-    """Box-filtered colours (3, K) of K pixels as the mean of their 2 × 2 sub-boxes, each
-    traced in box mode (its own nearest edge, its own sides); `primary` (o, d and their
-    differentials per pixel), moved to the sub-boxes' centres by the differentials.
-    `count` (traced): only the first `count` pixels are wanted."""
-    o, d, df = primary
-    k = o.shape[-1]
+def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: int) -> edges.EdgeSamples:
+    """`trace_edges` in box mode with sub-boxes: rounds of one compiled pass
+    (`_edge_pass`, a `lax.scan`) over the same number of rays. Round 0 traces the
+    pixels and picks those to subdivide (up to `capacity`); each later round traces the
+    2 × 2 sub-boxes of a quarter of `capacity` of them (the primary rays moved to the
+    sub-boxes' centres by their differentials, which halve), and is skipped at run time
+    past the last. A pixel's blend is the mean of its sub-boxes' blends.
+
+    One pass serves both, so the mode's program holds the chain's passes once, not
+    twice: its compile time is about the one-box mode's."""
+    n = primary[0].shape[1]
+    group = max(1, capacity // 4)  # pixels per sub-box round: their 4 sub-boxes fill at most `capacity`
+    rounds = -(-capacity // group)
+    size = max(n, 4 * group)  # rays per round (more than n only for images of under 4 pixels)
     quarter = width / 4
-    offsets = ((-1, -1), (1, -1), (-1, 1), (1, 1))
 
-    def four(a):  # 4 × (..., K) → (..., 4K), a pixel's four sub-boxes next to one another
-        return jnp.stack(a, axis=-1).reshape(a[0].shape[:-1] + (4 * k,))
+    def padded(a):  # (..., k) → (..., size), padding with copies of the last ray
+        return jnp.pad(a, [(0, 0)] * (a.ndim - 1) + [(0, size - a.shape[-1])], mode="edge")
 
-    moved = [edges.moved_rays(o, d, df, sx * quarter, sy * quarter) for sx, sy in offsets]
-    so, sd = four([m[0] for m in moved]), four([m[1] for m in moved])
-    sdiff = edges.Differentials(*(four([a / 2] * 4) for a in df))
-    group = 4 * min(k, SUB_BOX_GROUP)
+    def sub_box_rays(chosen, r):
+        """The sub-boxes of chosen pixels r·group … (r + 1)·group − 1, as `size` rays, and
+        how many of them are wanted."""
+        index = jnp.pad(chosen.index, (0, rounds * group - capacity))
+        po, pd, pdf = jax.tree_util.tree_map(lambda a: a[..., jax.lax.dynamic_slice(index, (r * group,), (group,))],
+                                             primary)
 
-    def run(o, d, diff):
-        return trace_edges(s, p, o, d, diff, depth, width, BOX, group).blended
+        def four(a):  # 4 × (..., K) → (..., size): a pixel's four sub-boxes next to one another
+            return padded(jnp.stack(a, axis=-1).reshape(a[0].shape[:-1] + (4 * group,)))
 
-    colour = tiled(run, group, so, sd, sdiff, count=4 * jnp.minimum(count, k))
-    return colour.reshape(3, k, 4).mean(axis=-1)
+        moved = [edges.moved_rays(po, pd, pdf, sx * quarter, sy * quarter) for sx, sy in SUB_BOX_OFFSETS]
+        rays = (four([mv[0] for mv in moved]), four([mv[1] for mv in moved]),
+                edges.Differentials(*(four([a / 2] * 4) for a in pdf)))
+        return rays, 4 * jnp.clip(chosen.count - r * group, 0, group)
+
+    def one(r, chosen):
+        sub, live = sub_box_rays(chosen, jnp.maximum(r - 1, 0))
+        rays = jax.tree_util.tree_map(lambda a, b: jnp.where(r == 0, padded(a), b), primary, sub)
+        return _edge_pass(s, p, rays, depth, width, BOX, capacity, jnp.where(r == 0, n, live), subdivided=True)
+
+    def body(chosen, r):
+        shapes = jax.eval_shape(one, r, chosen)
+        out = jax.lax.cond((r == 0) | (chosen.count > (r - 1) * group), jax.checkpoint(one, prevent_cse=False),
+                           lambda r, c: jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes), r, chosen)
+        picked = pack(out.subdivided, capacity)
+        chosen = jax.tree_util.tree_map(lambda a, b: jnp.where(r == 0, a, b), picked, chosen)
+        return chosen, out.samples
+
+    chosen, samples = jax.lax.scan(body, pack(jnp.zeros(size, bool), capacity), jnp.arange(1 + rounds))
+    pixels = jax.tree_util.tree_map(lambda a: a[0, ..., :n], samples)
+    boxes = samples.blended[1:, :, :4 * group].reshape(rounds, 3, group, 4).mean(axis=-1)
+    boxes = jnp.moveaxis(boxes, 0, 1).reshape(3, rounds * group)[:, :capacity]
+    return pixels._replace(blended=chosen.scatter(pixels.blended, boxes))
 
 
 def tiled(fn, tile: int, *arrays, count=None):
