@@ -120,7 +120,7 @@ def render(
       is a mirror's or glass sphere's outline, or a shadow edge seen past one) are
       box-filtered as the mean of 2 × 2 sub-boxes, each with its own nearest edge
       (`trace.trace_edges`): derivatives far closer to the truth inside mirrors and
-      glass, at about 2.5 times the mode's cost (docs/EDGES.md).
+      glass, at about twice the mode's cost (docs/EDGES.md).
     tile: rays traced together (default: 2¹⁷ on a CPU, 2²⁰ on an accelerator); the
       image does not depend on it, only speed and memory do.
 

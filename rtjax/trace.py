@@ -405,14 +405,14 @@ def _edge_pass(s: Structure, p: Params, primary, depth: int, width, mode: Mode, 
     `live` (traced): only the first `live` of them are wanted (the rest start ended);
     `subdivided` (static, box mode): which pixels want sub-boxes too."""
     o, d, diff = primary
+    n = o.shape[1]
     m = prepare(s, p)
     watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width, curves=mode == BOX, shadows=subdivided)
     first = start_rays(o, d, mode, diff)
     if live is not None:
-        first = first._replace(weight=jnp.where(jnp.arange(o.shape[1]) < live, first.weight, 0))
+        first = first._replace(weight=jnp.where(jnp.arange(n) < live, first.weight, 0))
     rays, best = _chain(s, p, m, first, depth, mode, width, watch=watch)
     centre = jnp.clip(rays.colour, 0, 255)
-    n = o.shape[1]
     packed = pack(best.edge >= 0, capacity)
     b = packed.gather(best)
     r0 = b.rays
@@ -483,8 +483,8 @@ def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: i
     size = max(n, 4 * group)  # rays per round (more than n only for images of under 4 pixels)
     quarter = width / 4
 
-    def padded(a):  # (..., k) → (..., size), padding with copies of the last ray
-        return jnp.pad(a, [(0, 0)] * (a.ndim - 1) + [(0, size - a.shape[-1])], mode="edge")
+    def padded(a):
+        return pad_last(a, size)
 
     def sub_box_rays(chosen, r):
         """The sub-boxes of chosen pixels r·group … (r + 1)·group − 1, as `size` rays, and
@@ -521,6 +521,12 @@ def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: i
     return pixels._replace(blended=chosen.scatter(pixels.blended, boxes))
 
 
+def pad_last(a, size: int):
+    """(..., k) → (..., size), k ≤ size, padded with copies of the last ray (valid rays,
+    so padding computes nothing singular)."""
+    return jnp.pad(a, [(0, 0)] * (a.ndim - 1) + [(0, size - a.shape[-1])], mode="edge")
+
+
 def tiled(fn, tile: int, *arrays, count=None):
     """fn(*arrays) → a pytree of (..., P) arrays, run over tiles of `tile` rays one after
     another (`lax.map`) when P > tile: bounds memory on large images (the image does not
@@ -532,11 +538,9 @@ def tiled(fn, tile: int, *arrays, count=None):
     if n <= tile:
         return fn(*arrays)
     m = -(-n // tile)
-    pad = m * tile - n
 
     def split(a):  # (..., P) → (m, ..., tile), padding with copies of the last ray
-        a = jnp.concatenate([a, jnp.repeat(a[..., -1:], pad, axis=-1)], axis=-1) if pad else a
-        return jnp.moveaxis(a.reshape(a.shape[:-1] + (m, tile)), -2, 0)
+        return jnp.moveaxis(pad_last(a, m * tile).reshape(a.shape[:-1] + (m, tile)), -2, 0)
 
     def join(a):  # (m, ..., tile) → (..., P)
         return jnp.moveaxis(a, 0, -2).reshape(a.shape[1:-1] + (m * tile,))[..., :n]
