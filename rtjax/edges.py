@@ -66,9 +66,11 @@ def coverage(x, a, b):
     x: signed distance from the square's centre to the edge in units of its side,
     positive inside; (a, b): the edge normal's components in the image. The fraction is
     the CDF F of z = a·U₁ + b·U₂ for U uniform on [−½, ½]: a trapezoid's integral, C¹.
+    x is clamped to the trapezoid's support [−s, s] (F is 0 or 1 beyond it): the ramps'
+    squares would cancel catastrophically at a far edge (`FAR`).
     """
     s, e, ab = _trapezoid(a, b)
-    return _ramps(x, s, e, 2) / (2 * ab)
+    return _ramps(jnp.clip(x, -s, s), s, e, 2) / (2 * ab)
 
 
 def split_box(x, a, b):
@@ -78,6 +80,7 @@ def split_box(x, a, b):
     the centre: E[z | z > −x] and E[z | z < −x], from F and G = ∫F (cubic ramps).
     """
     s, e, ab = _trapezoid(a, b)
+    x = jnp.clip(x, -s, s)  # as in `coverage`: beyond, the box lies on one side
 
     def f(y):
         return _ramps(y, s, e, 2) / (2 * ab)
@@ -143,8 +146,28 @@ def edge_terms(o, d, ox, dx, oy, dy, c, r):
     t = -b
     rx = dot(lhat, ox + spread(t) * dx)
     ry = dot(lhat, oy + spread(t) * dy)
+    delta, nx, ny = _signed(l - r, rx, ry)
+    return delta, nx, ny, t, dot(f, f) > r**2
+
+
+#: |δ| (sample steps) given where an edge's distance has no rate along a ray: beyond any box.
+FAR = 1e6
+
+
+def _signed(gap, rx, ry):
+    """An edge's signed distance δ = gap / rate in sample steps and its unit normal
+    (nx, ny) in the image, from the gap and its rates across (rx) and down (ry).
+
+    Where δ would pass ±`FAR`, above all where the rate vanishes (a ray aimed at a
+    sphere's centre: the apex of its outline cone; a shadow ray through an occluder's
+    centre), the edge lies beyond any box: δ = ±FAR by the gap's sign, normal (1, 0),
+    and the division is not taken (its derivative would overflow)."""
+    floor = jnp.asarray(tiny(gap.dtype), gap.dtype)
     rate = safe_sqrt(rx**2 + ry**2, floor)
-    return safe_div(l - r, rate), safe_div(rx, rate), safe_div(ry, rate), t, dot(f, f) > r**2
+    far = jnp.abs(gap) >= FAR * rate
+    rate = jnp.where(far, 1, rate)
+    delta = jnp.where(far, jnp.where(gap < 0, -FAR, FAR).astype(gap.dtype), gap / rate)
+    return delta, jnp.where(far, 1, rx / rate), jnp.where(far, 0, ry / rate)
 
 
 def outline_terms(o, d, ox, dx, oy, dy, c, r):
@@ -167,8 +190,7 @@ def outline_terms(o, d, ox, dx, oy, dy, c, r):
 
     gap, rx = jax.jvp(g, (o, d), (ox, dx))
     ry = jax.jvp(g, (o, d), (oy, dy))[1]
-    rate = safe_sqrt(rx**2 + ry**2, floor)
-    return safe_div(gap, rate), safe_div(rx, rate), safe_div(ry, rate)
+    return _signed(gap, rx, ry)
 
 
 def _chosen_or_regular(edge, o, d, centers, radii):

@@ -261,5 +261,20 @@ def test_sphere_behind_the_eye():
     assert float(np.asarray(image)[3, 4, 0]) > 0  # seen in the mirror
 
 
+@pytest.mark.slow
+def test_rays_through_sphere_centres():
+    # a one-pixel image: its ray runs exactly through sphere 0's centre (the apex of its
+    # outline cone, where the distance to the outline has no rate), and so does the
+    # shadow ray from the hit toward the light, through the centre of sphere 1 behind
+    # the eye: each edge lies beyond the box all round (`edges._signed`), not at δ = 0
+    scene = rtjax.parse_deck(
+        "sphe 0 0 0 5\nopaq 1 0.5 0.2 0.3 10\nsphe 0 -80 0 10\nopaq 0 1 0 0.3 10\n"
+        "plig 0 -1 0 200 180 160\nelig 0.2\nback 10 20 30\neyep 0 -50 0\nrefp 0 0 0\nvang 40 30\nsize 1\nrend x.ras\n"
+    ).frames[0].scene
+    image = assert_finite_everywhere(scene, edges=1.0)
+    # the box lies on sphere 0 and wholly in sphere 1's shadow: ambient alone, ke·d·L
+    np.testing.assert_allclose(np.asarray(image)[0, 0], 0.2 * np.array([1, 0.5, 0.2]) * np.array([200, 180, 160]), rtol=1e-6)
+
+
 def test_eye_on_the_z_axis_looking_down():
     assert_finite_everywhere(deck("sphe 0 0 0 5\nopaq 1 0 0 0.3 5\n" + LIT, "eyep 0 0 50\nrefp 0 0 0\nvang 40 30\n"), edges=1.0)
