@@ -95,3 +95,11 @@ def dot(a, b):
     """Component-wise dot product of (3, ...) arrays."""
     (a0, a1, a2), (b0, b1, b2) = components(a), components(b)
     return a0 * b0 + a1 * b1 + a2 * b2
+
+
+def take_rows(table, idx):
+    """Rows `idx` (P,) of an (N, 3) table as a (3, P) array, one gather per component.
+
+    `table.T[:, idx]` gathers (P, 3) and transposes it; on XLA's CPU backend those
+    transposes and their reverse-mode copies took 7–10 % of a gradient's time."""
+    return jnp.stack([table[:, k][idx] for k in range(table.shape[1])])

@@ -27,7 +27,7 @@ from jaxtyping import Array, Bool, Float, Int, UInt
 
 from . import edges, spheres
 from .compact import pack
-from .numerics import dot, normalize, safe_sqrt, spread
+from .numerics import dot, normalize, safe_sqrt, spread, take_rows
 from .scene import GLASS, MIRROR, OPAQUE, TEXTURE, Params, Structure
 from .shading import local_light, phong_angles
 from .textures import textured_diffuse
@@ -68,7 +68,7 @@ def prepare(s: Structure, p: Params) -> Material:
 
 def surface_colour(s: Structure, p: Params, m: Material, idx, normal_out) -> Float[Array, "3 p"]:
     """The diffuse colour d at each hit: the sphere's own, or its texture's texel."""
-    d = m.diffuse.T[:, idx]
+    d = take_rows(m.diffuse, idx)
     if s.has(TEXTURE):
         d = textured_diffuse(p.textures, jnp.asarray(s.texture_index())[idx], normal_out, d)
     return d
