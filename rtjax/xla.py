@@ -1,4 +1,4 @@
-"""XLA settings for rtjax: a faster CPU code generator and a compilation cache.
+"""XLA settings for rtjax: faster CPU code generation and a compilation cache.
 
 Both are read when JAX starts its backend, so they apply to a process only if set
 before its first JAX computation; the `rtjax` command sets both.
@@ -8,18 +8,24 @@ from __future__ import annotations
 
 import os
 
-#: XLA's newer CPU fusion emitters, which run this renderer about half as fast and
-#: compile it slower (docs/MEASUREMENTS.md); `tune_cpu` turns them off.
-CPU_FLAG = "--xla_cpu_use_fusion_emitters=false"
+#: XLA CPU settings that `tune_cpu` adds, by flag name (checked on jaxlib 0.10.2):
+#: - the newer CPU fusion emitters off: they run this renderer about half as fast and
+#:   compile it slower;
+#: - no YNNPACK fusions: reverse mode's sums over a (3, P) array's leading axis (the
+#:   transposes of broadcasting a per-ray value to three components) ran as YNNPACK
+#:   reductions at several times a loop fusion's cost, 7–9 % of a gradient's thread time
+#:   (docs/MEASUREMENTS.md).
+CPU_FLAGS = {"xla_cpu_use_fusion_emitters": "false", "xla_cpu_experimental_ynn_fusion_type": ""}
 
 
 def tune_cpu() -> None:
-    """Add `CPU_FLAG` to the environment's XLA_FLAGS unless they already say how to use
-    the fusion emitters. Call it before any JAX computation (first thing in a script,
-    a notebook, a test session); afterwards it has no effect on the running process."""
+    """Add `CPU_FLAGS` to the environment's XLA_FLAGS, each unless they already set that
+    flag. Call it before any JAX computation (first thing in a script, a notebook, a test
+    session); afterwards it has no effect on the running process."""
     flags = os.environ.get("XLA_FLAGS", "")
-    if "xla_cpu_use_fusion_emitters" not in flags:
-        os.environ["XLA_FLAGS"] = (flags + " " + CPU_FLAG).strip()
+    extra = [f"--{name}={value}" for name, value in CPU_FLAGS.items() if name not in flags]
+    if extra:
+        os.environ["XLA_FLAGS"] = " ".join([flags, *extra]).strip()
 
 
 def cache_dir() -> str | None:
