@@ -9,7 +9,9 @@ is compiled once per dtype and shared through the jit cache:
 
 - one opaque sphere, plain (depth 0) and silhouette-aware;
 - glass then opaque (GLASS), depth 3, plain;
-- opaque then mirror (MIRROR), depth 2, plain and silhouette-aware.
+- opaque then mirror (MIRROR), depth 2, plain and silhouette-aware;
+- two opaque spheres in a one-pixel image, silhouette-aware (rays exactly through
+  sphere centres need a pixel on the view's axis).
 
 The derivative checks compile with `jax_disable_most_optimizations` (`conftest.quick_xla`
 says why that still checks the same program); the forward renders of
