@@ -483,9 +483,6 @@ def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: i
     size = max(n, 4 * group)  # rays per round (more than n only for images of under 4 pixels)
     quarter = width / 4
 
-    def padded(a):
-        return pad_last(a, size)
-
     def sub_box_rays(chosen, r):
         """The sub-boxes of chosen pixels r·group … (r + 1)·group − 1, as `size` rays, and
         how many of them are wanted."""
@@ -494,7 +491,7 @@ def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: i
                                              primary)
 
         def four(a):  # 4 × (..., K) → (..., size): a pixel's four sub-boxes next to one another
-            return padded(jnp.stack(a, axis=-1).reshape(a[0].shape[:-1] + (4 * group,)))
+            return pad_last(jnp.stack(a, axis=-1).reshape(a[0].shape[:-1] + (4 * group,)), size)
 
         moved = [edges.moved_rays(po, pd, pdf, sx * quarter, sy * quarter) for sx, sy in SUB_BOX_OFFSETS]
         rays = (four([mv[0] for mv in moved]), four([mv[1] for mv in moved]),
@@ -503,7 +500,7 @@ def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: i
 
     def one(r, chosen):
         sub, live = sub_box_rays(chosen, jnp.maximum(r - 1, 0))
-        rays = jax.tree_util.tree_map(lambda a, b: jnp.where(r == 0, padded(a), b), primary, sub)
+        rays = jax.tree_util.tree_map(lambda a, b: jnp.where(r == 0, pad_last(a, size), b), primary, sub)
         return _edge_pass(s, p, rays, depth, width, BOX, capacity, jnp.where(r == 0, n, live), subdivided=True)
 
     def body(chosen, r):
