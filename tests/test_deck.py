@@ -20,6 +20,8 @@ from rtjax.errors import DeckError, RtjaxError
 from rtjax.images import load_image
 from rtjax.sunraster import write_sunraster
 
+from deck_checks import assert_same_frames
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 SCENES = os.path.join(os.path.dirname(HERE), "scenes")
 SAMPLE = os.path.join(SCENES, "ex2s3.dat")
@@ -453,21 +455,6 @@ def test_top_level_api():
 # ---- the writer ----------------------------------------------------------------------------
 
 
-def assert_same_frames(a: Deck, b: Deck) -> None:
-    """Identical Structure (texture names too) and every parameter identical bit for bit."""
-    assert len(a.frames) == len(b.frames) > 0
-    for fa, fb in zip(a.frames, b.frames):
-        assert fa.output == fb.output
-        sa, sb = fa.scene.structure, fb.scene.structure
-        assert sa == sb and sa.texture_files == sb.texture_files
-        la, ta = jax.tree_util.tree_flatten(fa.scene.params)
-        lb, tb = jax.tree_util.tree_flatten(fb.scene.params)
-        assert ta == tb
-        for x, y in zip(la, lb):
-            x, y = np.asarray(x), np.asarray(y)
-            assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()
-
-
 NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?", re.ASCII)
 
 
@@ -489,6 +476,7 @@ def round_trip(deck: Deck, folder: str = ".", **kw) -> Deck:
     text = format_deck(deck.frames, **kw)
     assert_valid_deck_text(text)
     again = parse_deck(text, "written.dat", folder=folder, load_texture=load_image)
+    assert deck.frames
     assert_same_frames(deck, again)
     assert format_deck(again.frames, **kw) == text  # writing is a fixed point
     return again
@@ -535,6 +523,7 @@ def test_writer_round_trips_textures(tmp_path):
     deck = load_deck(tmp_path / "t.dat")
     assert "tmap t.ras 0 1\n" in format_deck(deck.frames)
     save_deck(tmp_path / "copy.dat", deck.frames)
+    assert deck.frames
     assert_same_frames(deck, load_deck(tmp_path / "copy.dat"))
     assert sorted(os.listdir(tmp_path)) == ["copy.dat", "t.dat", "t.ras"]  # no temporary file left
 

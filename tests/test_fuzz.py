@@ -36,6 +36,8 @@ from rtjax.errors import DeckError, ImageError
 from rtjax.images import load_image, save_image
 from rtjax.sunraster import SUN_MAGIC, decode_sunraster, encode_sunraster, read_sunraster, write_sunraster
 
+from deck_checks import assert_same_frames
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 SCENES = os.path.join(ROOT, "scenes")
@@ -94,20 +96,6 @@ def check_frame(frame) -> None:
     assert len(p.textures) == s.kinds.count("tmap") == len(s.texture_files)
 
 
-def same_frames(a: Deck, b: Deck) -> None:
-    assert len(a.frames) == len(b.frames)
-    for fa, fb in zip(a.frames, b.frames):
-        assert fa.output == fb.output
-        assert fa.scene.structure == fb.scene.structure
-        assert fa.scene.structure.texture_files == fb.scene.structure.texture_files
-        la, ta = jax.tree_util.tree_flatten(fa.scene.params)
-        lb, tb = jax.tree_util.tree_flatten(fb.scene.params)
-        assert ta == tb
-        for x, y in zip(la, lb):
-            x, y = np.asarray(x), np.asarray(y)
-            assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()
-
-
 def check_deck_text(text: str) -> str:
     """The parser's contract on any text: a Deck, or a DeckError at a line that exists."""
     n_lines = len(LINE_BREAKS.split(text))
@@ -126,7 +114,7 @@ def check_deck_text(text: str) -> str:
     if deck.frames:
         written = format_deck(deck.frames)
         again = parse_deck(written, "again.dat", folder="/nonexistent", load_texture=fuzz_texture)
-        same_frames(deck, again)
+        assert_same_frames(deck, again)
     event(f"deck with {min(len(deck.frames), 2)}+ frames")
     return "deck"
 
@@ -341,7 +329,7 @@ def test_valid_decks_parse_to_what_they_say_and_round_trip(case):
         assert np.array_equal(p.vang, [f32(t) for t in want["vang"]])
     written = format_deck(deck.frames)
     again = parse_deck(written, "again.dat", load_texture=fuzz_texture)
-    same_frames(deck, again)
+    assert_same_frames(deck, again)
     assert format_deck(again.frames) == written
 
 
