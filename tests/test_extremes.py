@@ -9,9 +9,10 @@ is compiled once per dtype and shared through the jit cache:
 
 - one opaque sphere, plain (depth 0) and silhouette-aware;
 - glass then opaque (GLASS), depth 3, plain;
-- opaque then mirror (MIRROR), depth 2, plain and silhouette-aware;
-- two opaque spheres in a one-pixel image, silhouette-aware (rays exactly through
-  sphere centres need a pixel on the view's axis).
+- opaque then mirror (MIRROR), depth 2, plain and silhouette-aware.
+
+Images are 9 × 7, so that the centre pixel's ray runs exactly along the view (rays
+through sphere centres need one).
 
 The derivative checks compile with `jax_disable_most_optimizations` (`conftest.quick_xla`
 says why that still checks the same program); the forward renders of
@@ -29,7 +30,7 @@ from conftest import quick_xla
 
 import rtjax
 
-SIZE = "size 8\n"
+SIZE = "size 9\n"  # 9 × 7: pixel (3, 4) is the centre one, its ray exactly along the view
 
 
 def deck(body: str, camera: str = "eyep 0 -50 0\nrefp 0 0 0\nvang 40 30\n") -> rtjax.Scene:
@@ -121,11 +122,10 @@ def assert_mirror_finite(scene: rtjax.Scene, edges: float):
 @pytest.mark.slow
 @pytest.mark.parametrize("edges", [0.0, 1.0])
 def test_tangent_ray(edges):
-    # the vertical image centre line of an 8-wide image lies between pixels; put the
-    # sphere's silhouette exactly on pixel centres by aligning it with a ray direction
+    # put the sphere's silhouette exactly on a pixel centre by aligning it with that
+    # pixel's ray
     scene = deck("sphe 0 0 0 5\nopaq 1 0.5 0.2 0.3 10\n" + LIT)
-    o, d = rtjax.camera.primary_rays(scene.params.eye, scene.params.refp, scene.params.vang, 8, 6, jnp.array([0.5, 0.5]))
-    d = np.asarray(d)[:, 3 * 8 + 5]  # some pixel's ray
+    _, d = pixel_ray(scene, 3, 5)  # some pixel's ray
     eye = np.asarray(scene.params.eye)
     # radius = distance from the centre to that ray: the ray is exactly tangent
     r = np.linalg.norm(np.cross(-eye, d))
@@ -155,15 +155,15 @@ def test_total_internal_reflection_onset_and_past_it():
     assert np.linalg.norm(c - eye) < r - 1  # the eye is inside: every primary ray leaves through the glass
     ratio = n * np.linalg.norm(np.cross(c - eye, d), axis=1) / r
     tir = ratio > 1
-    assert 10 <= tir.sum() <= ratio.size - 10, ratio.reshape(6, 8)  # both cases, in many pixels
+    assert 10 <= tir.sum() <= ratio.size - 10, ratio.reshape(7, 9)  # both cases, in many pixels
     assert ratio.max() > 1.1 and ratio.min() < 0.8  # well past the critical angle, and well short of it
-    assert abs(ratio[3 * 8 + 4] - 1) < 1e-6, ratio[3 * 8 + 4]  # and its onset, at pixel (3, 4)
+    assert abs(ratio[3 * 9 + 4] - 1) < 1e-6, ratio[3 * 9 + 4]  # and its onset, at pixel (3, 4)
     image = assert_glass_finite(s)
     # the render agrees: past the critical angle a ray never leaves the glass within the
     # depth and shows only the glass's highlight; short of it, it sees the background
     # through the glass (blue 0.9·30 = 27)
     blue = np.asarray(image)[..., 2].reshape(-1)
-    assert blue[ratio < 0.999].min() > blue[ratio > 1.001].max() + 5, blue.reshape(6, 8)
+    assert blue[ratio < 0.999].min() > blue[ratio > 1.001].max() + 5, blue.reshape(7, 9)
 
 
 @pytest.mark.slow
@@ -187,11 +187,11 @@ def test_beta_extremes(beta):
 
 
 def test_cos_gamma_zero_exactly():
-    # at pixel (3, 4)'s hit point (normal N, V toward the eye), a light L with N·L > 0
+    # at pixel (2, 5)'s hit point (normal N, V toward the eye), a light L with N·L > 0
     # whose reflection R_L = 2(N·L)N − L is perpendicular to V: cos γ = R_L·V = 0 there
-    # (to rounding), the kink of max(cos γ, 0)^β
+    # (to rounding), the kink of max(cos γ, 0)^β (off the centre pixel, where N ∥ V)
     body = "sphe 0 0 0 10\nopaq 1 1 1 1 7\n"
-    hit, n = first_hit(deck(body + LIT), 3, 4)
+    hit, n = first_hit(deck(body + LIT), 2, 5)
     v = np.asarray(deck(body + LIT).params.eye, np.float64) - hit
     v /= np.linalg.norm(v)
     reflected = n - (n @ v) * v  # ⟂ V, and R_L·N > 0
@@ -265,17 +265,17 @@ def test_sphere_behind_the_eye():
 
 @pytest.mark.slow
 def test_rays_through_sphere_centres():
-    # a one-pixel image: its ray runs exactly through sphere 0's centre (the apex of its
+    # the centre pixel's ray runs exactly through sphere 0's centre (the apex of its
     # outline cone, where the distance to the outline has no rate), and so does the
-    # shadow ray from the hit toward the light, through the centre of sphere 1 behind
+    # shadow ray from the hit toward the light, through the centre of the mirror behind
     # the eye: each edge lies beyond the box all round (`edges._signed`), not at δ = 0
-    scene = rtjax.parse_deck(
-        "sphe 0 0 0 5\nopaq 1 0.5 0.2 0.3 10\nsphe 0 -80 0 10\nopaq 0 1 0 0.3 10\n"
-        "plig 0 -1 0 200 180 160\nelig 0.2\nback 10 20 30\neyep 0 -50 0\nrefp 0 0 0\nvang 40 30\nsize 1\nrend x.ras\n"
-    ).frames[0].scene
-    image = assert_finite_everywhere(scene, edges=1.0)
-    # the box lies on sphere 0 and wholly in sphere 1's shadow: ambient alone, ke·d·L
-    np.testing.assert_allclose(np.asarray(image)[0, 0], 0.2 * np.array([1, 0.5, 0.2]) * np.array([200, 180, 160]), rtol=1e-6)
+    scene = deck("sphe 0 0 0 5\nopaq 1 0.5 0.2 0.3 10\nsphe 0 -80 0 10\nmirr\nplig 0 -1 0 200 180 160\nelig 0.2\n"
+                 "back 10 20 30\n")
+    eye, d = pixel_ray(scene, 3, 4)
+    assert np.array_equal(d, [0, 1, 0]) and np.array_equal(eye, [0, -50, 0])  # exactly along the view
+    image = assert_mirror_finite(scene, edges=1.0)
+    # the box lies on sphere 0 and wholly in the mirror's shadow: ambient alone, ke·d·L
+    np.testing.assert_allclose(np.asarray(image)[3, 4], 0.2 * np.array([1, 0.5, 0.2]) * np.array([200, 180, 160]), rtol=1e-6)
 
 
 def test_eye_on_the_z_axis_looking_down():
