@@ -40,7 +40,7 @@ from jax.ad_checkpoint import checkpoint_name
 from jaxtyping import Array, Bool, Float, Int
 
 from . import curves, spheres
-from .numerics import dot, normalize, safe_div, safe_sqrt, spread, take_rows, tiny
+from .numerics import dot, lookup, normalize, safe_div, safe_sqrt, spread, take_rows, tiny
 
 #: Smallest |component| of an edge's normal used in the box filter: keeps the
 #: trapezoid formula's division well conditioned for axis-aligned edges.
@@ -198,7 +198,7 @@ def _chosen_or_regular(edge, o, d, centers, radii):
     sphere well clear of the ray (so the unused branch has finite derivatives: the
     double-where pattern, applied to the geometry)."""
     e = jnp.maximum(edge, 0)
-    c, r = take_rows(centers, e), radii[e]
+    c, r = take_rows(centers, e), lookup(radii, e)
     x, y, z = d
     use_z = jnp.abs(z) < 0.9
     side = normalize(jnp.stack([jnp.where(use_z, y, 0), jnp.where(use_z, -x, z), jnp.where(use_z, 0, -y)]))
@@ -456,7 +456,7 @@ def _chosen_or_met(edge, o, d, centers, radii):
     use = edge >= 0
     k = jnp.maximum(edge, 0)
     c = jnp.where(use, take_rows(centers, k), jax.lax.stop_gradient(o + 2 * d))
-    r = jnp.where(use, radii[k], 1)
+    r = jnp.where(use, lookup(radii, k), 1)
     return c, r
 
 

@@ -28,7 +28,7 @@ from jax.ad_checkpoint import checkpoint_name
 from jaxtyping import Array, Bool, Float, Int
 
 from .compact import pack
-from .numerics import dot, normalize, safe_sqrt, spread, take_rows
+from .numerics import dot, lookup, normalize, safe_sqrt, spread, take_rows
 
 #: Relative size of the hit-distance floor for spheres other than the ray's origin.
 TMIN_REL = {jnp.dtype(jnp.float32): 1e-4, jnp.dtype(jnp.float64): 1e-9}
@@ -247,7 +247,7 @@ def nearest_hit(o, d, centers, radii, origin, tmin, cull: bool, toggles: Toggles
         forced = (toggles.force >= 0) & (~found | (idx != toggles.force))
         found, idx, far = found | forced, jnp.where(forced, toggles.force, idx), far & ~forced
     sign = jnp.where(far, 1, -1).astype(o.dtype)
-    c, r = take_rows(centers, idx), radii[idx]
+    c, r = take_rows(centers, idx), lookup(radii, idx)
     b, l, sq = sphere_geometry(o, d, c, r)
     t = -b + sign * sq
     normal = (l + spread(sign * sq) * d) / spread(r)

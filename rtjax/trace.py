@@ -27,7 +27,7 @@ from jaxtyping import Array, Bool, Float, Int, UInt
 
 from . import edges, spheres
 from .compact import pack
-from .numerics import dot, normalize, safe_sqrt, spread, take_rows
+from .numerics import dot, lookup, normalize, safe_sqrt, spread, take_rows
 from .scene import GLASS, MIRROR, OPAQUE, TEXTURE, Params, Structure
 from .shading import local_light, phong_angles
 from .textures import textured_diffuse
@@ -98,7 +98,7 @@ def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, mode
         return Shade(total, (), flip, near)
     idx = jnp.maximum(hit.index, 0)
     d = surface_colour(s, p, m, idx, hit.normal_out)
-    ks, beta = m.ks[idx], m.beta[idx]
+    ks, beta = lookup(m.ks, idx), lookup(m.beta, idx)
     visible = []
     for i, (light, colour) in enumerate(zip(m.lights, p.light_colors)):
         nl, cos_g = phong_angles(n, v, light)
@@ -159,7 +159,8 @@ def next_direction(s: Structure, p: Params, idx, d, n, entering):
     reflected = d + spread(2 * cos_i) * n
     if not s.has(GLASS):
         return reflected
-    eta = jnp.where(entering, 1 / p.ior[idx], p.ior[idx])
+    ior = lookup(p.ior, idx)
+    eta = jnp.where(entering, 1 / ior, ior)
     k = 1 - eta**2 * (1 - cos_i**2)
     band = CRITICAL_BAND[jnp.dtype(d.dtype)]
     root = safe_sqrt(jnp.where(k > band, k, 0), jnp.asarray(TIR_SLOPE_FLOOR[jnp.dtype(d.dtype)], d.dtype))
@@ -225,7 +226,7 @@ def segment(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: 
     idx = jnp.maximum(hit.index, 0)
     alive = hit.found & jnp.asarray(s.mask(MIRROR, GLASS))[idx] & (rays.level < depth)
     glass = jnp.asarray(s.mask(GLASS))[idx]
-    weight = jnp.where(alive, rays.weight * jnp.where(glass, p.kt[idx], 1), 0)
+    weight = jnp.where(alive, rays.weight * jnp.where(glass, lookup(p.kt, idx), 1), 0)
 
     def turn(d, n):
         return normalize(next_direction(s, p, idx, d, n, entering))

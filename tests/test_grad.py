@@ -204,3 +204,33 @@ def test_float32_agrees_with_float64_on_the_sample_deck(edges):
     off = np.abs(single - double).max(axis=-1)
     assert np.mean(off < 0.5) >= 0.995, f"{np.mean(off < 0.5):.4f} of pixels within 0.5 levels"
     assert np.median(off) < 1e-3
+
+
+@pytest.mark.parametrize("n", [5, 40])
+def test_lookup_derivatives_equal_a_gathers(n):
+    """`numerics.lookup` (per-sphere values at each ray's sphere) has a gather's value and
+    derivatives, forward and reverse, in float64; for tables up to `LOOKUP_SELECT_MAX`
+    rows its reverse mode has no scatter (XLA's CPU backend runs one ray at a time)."""
+    from rtjax import numerics
+
+    rng = np.random.default_rng(n)
+    table = jnp.asarray(rng.normal(size=n))
+    idx = jnp.asarray(rng.integers(0, n, size=300), jnp.int32)
+    weights = jnp.asarray(rng.normal(size=300))
+    dt = jnp.asarray(rng.normal(size=n))
+
+    def gathered(t):
+        return t[idx]
+
+    def looked_up(t):
+        return numerics.lookup(t, idx)
+
+    for f in (gathered, looked_up):
+        assert np.array_equal(f(table), table[np.asarray(idx)])
+    np.testing.assert_allclose(jax.jvp(looked_up, (table,), (dt,))[1], jax.jvp(gathered, (table,), (dt,))[1],
+                               rtol=1e-15, atol=0)
+    expected = np.bincount(np.asarray(idx), weights=np.asarray(weights), minlength=n)
+    grad = jax.grad(lambda t: jnp.sum(weights * looked_up(t)))(table)
+    np.testing.assert_allclose(grad, expected, rtol=1e-12, atol=1e-12)
+    text = jax.jit(jax.grad(lambda t: jnp.sum(weights * looked_up(t)))).lower(table).as_text()
+    assert ("scatter" in text) == (n > numerics.LOOKUP_SELECT_MAX)
