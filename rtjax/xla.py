@@ -1,11 +1,13 @@
-"""XLA settings for rtjax: faster CPU code generation and a compilation cache.
+"""CPU settings for rtjax (XLA's code generation, the C library's reuse of freed memory)
+and XLA's compilation cache.
 
-Both are read when JAX starts its backend, so they apply to a process only if set
-before its first JAX computation; the `rtjax` command sets both.
+XLA reads its settings when JAX starts its backend, so they apply to a process only if
+set before its first JAX computation; the `rtjax` command sets them all.
 """
 
 from __future__ import annotations
 
+import ctypes
 import os
 
 #: XLA CPU settings that `tune_cpu` adds, by flag name (checked on jaxlib 0.10.2):
@@ -18,14 +20,44 @@ import os
 CPU_FLAGS = {"xla_cpu_use_fusion_emitters": "false", "xla_cpu_experimental_ynn_fusion_type": ""}
 
 
+#: glibc `mallopt` settings that `tune_cpu` makes, by name: (parameter number in
+#: <malloc.h>, value). XLA:CPU allocates a program's temporaries afresh at each call,
+#: and glibc serves a block over 32 MiB (a gradient's, at a few hundred pixels square)
+#: with a fresh `mmap`, unmapped when freed, so each call faulted its temporaries in
+#: page by page, a quarter of the gradient's time (docs/MEASUREMENTS.md). With no
+#: `mmap` (`M_MMAP_MAX` 0) and up to `M_TRIM_THRESHOLD` bytes of freed memory kept, the
+#: next call reuses the same pages. That holds in the main thread's heap only (other
+#: threads' heaps cap a block at 64 MiB), hence `tune_cpu`'s synchronous dispatch; one
+#: heap for all threads (`M_ARENA_MAX` 1) would do too, but slows XLA's compiles.
+MALLOC_OPTIONS = {"M_TRIM_THRESHOLD": (-1, 1 << 30), "M_MMAP_MAX": (-4, 0)}
+
+
 def tune_cpu() -> None:
-    """Add `CPU_FLAGS` to the environment's XLA_FLAGS, each unless they already set that
-    flag. Call it before any JAX computation (first thing in a script, a notebook, a test
-    session); afterwards it has no effect on the running process."""
+    """Settings for rendering on CPUs: add `CPU_FLAGS` to the environment's XLA_FLAGS
+    (each unless they already set that flag), run computations synchronously (in the
+    calling thread, so that their temporaries come from its heap), and make
+    `MALLOC_OPTIONS` where the C library is glibc. Call it before any JAX computation
+    (first thing in a script, a notebook, a test session); afterwards the first two
+    have no effect on the running process."""
     flags = os.environ.get("XLA_FLAGS", "")
     extra = [f"--{name}={value}" for name, value in CPU_FLAGS.items() if name not in flags]
     if extra:
         os.environ["XLA_FLAGS"] = " ".join([flags, *extra]).strip()
+    import jax
+
+    jax.config.update("jax_cpu_enable_async_dispatch", False)
+    reuse_freed_memory()
+
+
+def reuse_freed_memory() -> bool:
+    """Make `MALLOC_OPTIONS` (glibc only: elsewhere nothing is changed). Returns whether
+    all of them were accepted."""
+    try:
+        libc = ctypes.CDLL(None)  # the process's own C library
+        mallopt, _ = libc.mallopt, libc.gnu_get_libc_version  # glibc's (musl's mallopt does nothing)
+    except (OSError, AttributeError):
+        return False
+    return all(mallopt(code, value) == 1 for code, value in MALLOC_OPTIONS.values())
 
 
 def cache_dir() -> str | None:
