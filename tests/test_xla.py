@@ -12,7 +12,7 @@ import sys
 import pytest
 
 # A program with 128 MiB of temporaries (a loop's carry, which XLA cannot fuse away),
-# called four times; prints the minor page faults of each call.
+# called ten times; prints the minor page faults of each call.
 PROGRAM = """
 import json, resource, sys
 import jax, jax.numpy as jnp
@@ -25,7 +25,7 @@ def f(x):
 x = jnp.linspace(0, 1, 1 << 24)
 compiled = jax.jit(f).lower(x).compile()
 faults = []
-for _ in range(4):
+for _ in range(10):
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     compiled(x).block_until_ready()
     faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
@@ -43,7 +43,8 @@ def _faults(mode: str) -> dict:
 def test_tune_cpu_reuses_temporaries():
     plain, tuned = _faults("plain"), _faults("tuned")
     pages = plain["temp"] / 4096
-    # untuned, each call faults its temporaries in afresh (what the settings are for)
-    assert min(plain["faults"][1:]) > 0.5 * pages, plain
-    # tuned, the heap has grown by the second call; later calls fault almost nothing in
-    assert max(tuned["faults"][2:]) < 0.01 * pages, tuned
+    # untuned, every call faults its temporaries in afresh (what the settings are for)
+    assert all(f > 0.5 * pages for f in plain["faults"]), plain
+    # tuned, the first calls grow the heap until it settles (one to three calls, more
+    # on a loaded machine); most calls fault almost nothing in
+    assert sum(f < 0.01 * pages for f in tuned["faults"]) >= 6, tuned
