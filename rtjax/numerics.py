@@ -97,21 +97,19 @@ def dot(a, b):
     return a0 * b0 + a1 * b1 + a2 * b2
 
 
-#: Tables of at most this many rows are read by `lookup` with a derivative of selects;
-#: larger ones (culled scenes) by a gather.
-LOOKUP_SELECT_MAX = 32
+#: Tables of at most this many rows are read by `lookup` with a one-hot derivative;
+#: larger ones (culled scenes) with a gather's.
+LOOKUP_ONE_HOT_MAX = 32
 
 
 @jax.custom_jvp
 def lookup(table, idx):
-    """table[idx]: the per-sphere values (N,) at each ray's sphere index `idx` (P,), in
-    0..N−1.
+    """table[idx]: per-sphere values (N,) at each ray's sphere index `idx` (P,), in 0..N−1.
 
-    The value is the gather's; its derivative in `table` is Σₖ [idx = k]·dtableₖ (for
-    N ≤ `LOOKUP_SELECT_MAX`), so reverse mode sums each row's cotangent over the rays,
-    one reduction per row, where a gather's transpose is a scatter-add that XLA's CPU
-    backend runs as a loop over the rays, one at a time (22 ms of the sample deck's
-    gradient of ~110 ms)."""
+    The value is the gather's; its derivative in `table` (N ≤ `LOOKUP_ONE_HOT_MAX`) is
+    the one-hot product dtable · [idx = k], whose reverse mode is a matrix product too,
+    where a gather's transpose is a scatter-add that XLA's CPU backend runs as a loop
+    over the rays, one at a time (docs/MEASUREMENTS.md)."""
     return table[idx]
 
 
@@ -119,7 +117,7 @@ def lookup(table, idx):
 def _lookup_jvp(primals, tangents):
     (table, idx), (dt, _) = primals, tangents
     n = table.shape[0]
-    if n == 0 or n > LOOKUP_SELECT_MAX:
+    if n == 0 or n > LOOKUP_ONE_HOT_MAX:
         return table[idx], dt[idx]
     onehot = (idx[None, :] == jnp.arange(n)[:, None]).astype(dt.dtype)  # (N, P)
     return table[idx], dt @ onehot

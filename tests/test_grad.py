@@ -209,7 +209,7 @@ def test_float32_agrees_with_float64_on_the_sample_deck(edges):
 @pytest.mark.parametrize("n", [5, 40])
 def test_lookup_derivatives_equal_a_gathers(n):
     """`numerics.lookup` (per-sphere values at each ray's sphere) has a gather's value and
-    derivatives, forward and reverse, in float64; for tables up to `LOOKUP_SELECT_MAX`
+    derivatives, forward and reverse, in float64; for tables up to `LOOKUP_ONE_HOT_MAX`
     rows its reverse mode has no scatter (XLA's CPU backend runs one ray at a time)."""
     from rtjax import numerics
 
@@ -233,4 +233,4 @@ def test_lookup_derivatives_equal_a_gathers(n):
     grad = jax.grad(lambda t: jnp.sum(weights * looked_up(t)))(table)
     np.testing.assert_allclose(grad, expected, rtol=1e-12, atol=1e-12)
     text = jax.jit(jax.grad(lambda t: jnp.sum(weights * looked_up(t)))).lower(table).as_text()
-    assert ("scatter" in text) == (n > numerics.LOOKUP_SELECT_MAX)
+    assert ("scatter" in text) == (n > numerics.LOOKUP_ONE_HOT_MAX)
