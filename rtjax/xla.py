@@ -55,7 +55,7 @@ def reuse_freed_memory() -> bool:
     try:
         libc = ctypes.CDLL(None)  # the process's own C library
         mallopt, _ = libc.mallopt, libc.gnu_get_libc_version  # glibc's (musl's mallopt does nothing)
-    except (OSError, AttributeError):
+    except (OSError, AttributeError, TypeError):  # TypeError: Windows has no CDLL(None)
         return False
     return all(mallopt(code, value) == 1 for code, value in MALLOC_OPTIONS.values())
 
