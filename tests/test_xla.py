@@ -48,3 +48,18 @@ def test_tune_cpu_reuses_temporaries():
     # tuned, the first calls grow the heap until it settles (one to three calls, more
     # on a loaded machine); most calls fault almost nothing in
     assert sum(f < 0.01 * pages for f in tuned["faults"]) >= 6, tuned
+
+
+@pytest.mark.parametrize("error", [OSError, AttributeError, TypeError])
+def test_without_glibc_nothing_is_changed(monkeypatch, error):
+    """No C library handle (Windows: TypeError), or no glibc (macOS, musl: no such
+    symbol): `reuse_freed_memory` changes nothing and says so."""
+    import ctypes
+
+    from rtjax import xla
+
+    def refuse(*args, **kwargs):
+        raise error("no C library here")
+
+    monkeypatch.setattr(ctypes, "CDLL", refuse)
+    assert xla.reuse_freed_memory() is False
