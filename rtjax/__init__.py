@@ -14,6 +14,6 @@ from .errors import DeckError as DeckError, ImageError as ImageError, RtjaxError
 from .images import load_image as load_image, save_image as save_image, to_uint8 as to_uint8
 from .render import edge_samples as edge_samples, render as render, render_samples as render_samples
 from .scene import DEFAULT_DEPTH as DEFAULT_DEPTH, Params as Params, Scene as Scene, Structure as Structure
-from .xla import tune_cpu as tune_cpu
+from .xla import tune_cpu as tune_cpu, use_compilation_cache as use_compilation_cache
 
 __version__ = "0.1.0"

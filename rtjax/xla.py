@@ -76,12 +76,19 @@ def cache_dir() -> str | None:
 CACHE_MIN_COMPILE_S = 0.5
 
 
-def use_compilation_cache() -> None:
-    """Keep compiled programs in `cache_dir()` (if any) for later processes."""
-    path = cache_dir()
+def use_compilation_cache(path: str | os.PathLike | None = None) -> str | None:
+    """Keep XLA's compiled programs in the folder `path` (default `cache_dir()`) for later
+    processes: a later process that compiles the same program (same structure, size,
+    options and XLA settings) loads it instead, which spares the silhouette-aware
+    gradient most of its minute-long compile (JAX's own trace of the program remains).
+    Programs that compile in under `CACHE_MIN_COMPILE_S` are not kept. Call it before
+    compiling; the `rtjax` command does. Returns the folder, or None (`RTJAX_CACHE=off`
+    and no `path`: nothing is kept)."""
+    path = cache_dir() if path is None else os.fspath(path)
     if path is None:
-        return
+        return None
     import jax
 
     jax.config.update("jax_compilation_cache_dir", path)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", CACHE_MIN_COMPILE_S)
+    return path

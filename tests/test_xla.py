@@ -1,10 +1,12 @@
-"""`rtjax.tune_cpu`'s memory settings (rtjax/xla.py): a program called again reuses the
+"""rtjax/xla.py: `rtjax.tune_cpu`'s memory settings (a program called again reuses the
 pages of its temporaries instead of faulting fresh ones in, counted by the kernel's
-minor page faults in a process of its own."""
+minor page faults in a process of its own), and `rtjax.use_compilation_cache` (a later
+process loads the compiled program instead of compiling it)."""
 
 from __future__ import annotations
 
 import json
+import os
 import platform
 import subprocess
 import sys
@@ -63,3 +65,45 @@ def test_without_glibc_nothing_is_changed(monkeypatch, error):
 
     monkeypatch.setattr(ctypes, "CDLL", refuse)
     assert xla.reuse_freed_memory() is False
+
+
+# The gradient of the sample deck at 40 pixels wide (seconds to compile), in a process of
+# its own that keeps compiled programs in the folder it is given.
+CACHED = """
+import json, sys
+import rtjax
+rtjax.tune_cpu()
+folder = rtjax.use_compilation_cache(sys.argv[1])
+import jax, jax.numpy as jnp
+text = open("scenes/ex2s3.dat").read().replace("size 400", "size 40")
+scene = rtjax.parse_deck(text).frames[0].scene
+grad = jax.grad(lambda p: jnp.mean(rtjax.render(rtjax.Scene(scene.structure, p))))(scene.params)
+print(json.dumps({"folder": folder, "grad": [float(v) for v in grad.centers.ravel()]}))
+"""
+
+
+def _cached_run(folder) -> dict:
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    out = subprocess.run([sys.executable, "-c", CACHED, str(folder)], capture_output=True, text=True, timeout=600,
+                         cwd=root)  # the environment's RTJAX_CACHE=off (conftest) is overridden by the folder given
+    assert out.returncode == 0, out.stderr[-2000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.slow
+def test_a_later_process_loads_the_compiled_gradient(tmp_path):
+    folder = tmp_path / "xla"
+    first = _cached_run(folder)
+    assert first["folder"] == str(folder)
+    kept = sorted(os.listdir(folder))
+    assert kept  # the gradient's program was written
+    second = _cached_run(folder)
+    assert sorted(os.listdir(folder)) == kept  # loaded, nothing compiled anew
+    assert second["grad"] == first["grad"] and any(v != 0 for v in first["grad"])
+
+
+def test_use_compilation_cache_keeps_nothing_when_switched_off(monkeypatch):
+    from rtjax import xla
+
+    monkeypatch.setenv("RTJAX_CACHE", "off")
+    assert xla.use_compilation_cache() is None
