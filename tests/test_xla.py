@@ -12,6 +12,7 @@ import subprocess
 import sys
 
 import pytest
+from conftest import ROOT
 
 # A program with 128 MiB of temporaries (a loop's carry, which XLA cannot fuse away),
 # called ten times; prints the minor page faults of each call.
@@ -83,9 +84,8 @@ print(json.dumps({"folder": folder, "grad": [float(v) for v in grad.centers.rave
 
 
 def _cached_run(folder) -> dict:
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     out = subprocess.run([sys.executable, "-c", CACHED, str(folder)], capture_output=True, text=True, timeout=600,
-                         cwd=root)  # the environment's RTJAX_CACHE=off (conftest) is overridden by the folder given
+                         cwd=ROOT)  # the environment's RTJAX_CACHE=off (conftest) is overridden by the folder given
     assert out.returncode == 0, out.stderr[-2000:]
     return json.loads(out.stdout.strip().splitlines()[-1])
 
