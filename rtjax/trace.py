@@ -240,9 +240,8 @@ def segment(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: 
         # |l| = r, does not depend on the rate: so they carry no derivative themselves.
         sg = jax.lax.stop_gradient
         sign = jnp.where(entering, 1, -1).astype(o.dtype) / sg(p.radii)[idx]
-        # both differentials in one jvp over a batch of two tangents (one primal turn)
-        dd, dn = jnp.stack([rays.diff.dx, rays.diff.dy]), spread(sign) * jnp.stack([motion.x, motion.y])
-        outs = jax.vmap(lambda dd, dn: jax.jvp(turn, (sg(d), sg(n)), (dd, dn))[1])(dd, dn)
+        outs = [jax.jvp(turn, (sg(d), sg(n)), (dd, sign * dp))[1] for dd, dp in ((rays.diff.dx, motion.x),
+                                                                                  (rays.diff.dy, motion.y))]
         new_diff = edges.Differentials(*sg((motion.x, outs[0], motion.y, outs[1])))
     return Rays(hit.point, new_d, hit.index, weight, colour, rays.level + 1, flip, key, new_diff), hit, shade
 
