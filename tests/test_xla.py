@@ -36,10 +36,16 @@ print(json.dumps({"faults": faults, "temp": compiled.memory_analysis().temp_size
 """
 
 
-def _faults(mode: str) -> dict:
-    out = subprocess.run([sys.executable, "-c", PROGRAM, mode], capture_output=True, text=True, timeout=300)
+def _run(program: str, arg: str, timeout: int) -> dict:
+    """`program` in a Python process of its own, from the repository's root: the JSON of
+    its last line of output."""
+    out = subprocess.run([sys.executable, "-c", program, arg], capture_output=True, text=True, timeout=timeout, cwd=ROOT)
     assert out.returncode == 0, out.stderr[-2000:]
     return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _faults(mode: str) -> dict:
+    return _run(PROGRAM, mode, timeout=300)
 
 
 @pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="the settings are glibc's")
@@ -84,10 +90,7 @@ print(json.dumps({"folder": folder, "grad": [float(v) for v in grad.centers.rave
 
 
 def _cached_run(folder) -> dict:
-    out = subprocess.run([sys.executable, "-c", CACHED, str(folder)], capture_output=True, text=True, timeout=600,
-                         cwd=ROOT)  # the environment's RTJAX_CACHE=off (conftest) is overridden by the folder given
-    assert out.returncode == 0, out.stderr[-2000:]
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return _run(CACHED, str(folder), timeout=600)  # the folder given overrides the environment's RTJAX_CACHE=off (conftest)
 
 
 @pytest.mark.slow
