@@ -11,7 +11,11 @@ appearance parameters fitted jointly with it:
   so that gain and colours do not trade), per channel in [0, 1] ('albedo'); the
   background colour, per channel in 0..255 ('background'); a factor per channel on every
   light after the first ('lights'); the ambient coefficient ('ke'); each glass sphere's
-  transmission ('kt'); and an offset of every silhouette, in pixels ('dilate': every
+  transmission ('kt'); how dark the contact shadows are ('occlusion': the weight of every
+  sphere but a floor in the sky occlusion of the ambient term, `rtjax.occlusion`, times
+  1 − kt² for glass, which passes that much as it does a light's shadow ray; a
+  photo's sky light does not reach under and between its balls, and a model without
+  that reads those shadows as depth); and an offset of every silhouette, in pixels ('dilate': every
   sphere's radius but a floor's grows by that many pixel footprints at its distance):
   a tone curve, a blur taken in another colour space or darkened limbs move a
   photo's outlines by a fraction of a pixel, which the model would otherwise read as
@@ -87,7 +91,8 @@ class Range:
 #: whose ends are natural (a black or white channel); factors (lights, gain) are
 #: relative to the deck's values; the field's coefficients are log-gains at the image's
 #: edges; blur and chroma are Gaussian σ in pixels (0.1, a sharp image, is a natural
-#: limit); ke and kt are the deck's own [0, 1]; dilate is in pixels.
+#: limit); ke and kt are the deck's own [0, 1]; dilate is in pixels; occlusion is an
+#: occluder's weight, from none (0) to one that sends back no light (1).
 RANGES = {
     "albedo": Range(0.0, 1.0, flags=(False, False)),
     "background": Range(0.0, 1.0, flags=(False, False)),
@@ -95,6 +100,7 @@ RANGES = {
     "ke": Range(0.0, 1.0, flags=(False, True)),
     "kt": Range(0.0, 1.0, flags=(False, False)),
     "dilate": Range(-1.5, 1.5),
+    "occlusion": Range(0.0, 1.0, flags=(False, False)),
     "gain": Range(0.25, 4.0, log=True),
     "field": Range(-1.0, 1.0),
     "blur": Range(0.1, 3.0, flags=(False, True)),
@@ -109,6 +115,8 @@ CAMERA_START = {"blur": 0.7, "gamma": 1.0, "chroma": 0.5}
 #: Colours (albedo, background), ke and kt start at the deck's, at least this far inside
 #: their [0, 1] range: at an end the logistic's slope would hold them there.
 START_MARGIN = 0.02
+#: The occluders' weight at the start: halfway, as likely to send back light as not.
+OCCLUSION_START = 0.5
 #: The smooth illumination field's terms, in the image's coordinates u, v ∈ [−1, 1].
 FIELD_TERMS = 5
 
@@ -147,6 +155,7 @@ class Photo:
             "ke": np.clip(float(p.ke), START_MARGIN, 0.9),
             "kt": np.clip(np.asarray(p.kt, np.float64)[self.glass], START_MARGIN, 1 - START_MARGIN),
             "dilate": 0.0,
+            "occlusion": OCCLUSION_START,
             "gain": np.ones(3),
             "field": np.zeros(FIELD_TERMS),
             **CAMERA_START,
@@ -192,6 +201,9 @@ class Photo:
             new["light_colors"] = params.light_colors.at[1:].set(params.light_colors[1:] * v["lights"].astype(dtype))
         if "kt" in v:
             new["kt"] = params.kt.at[self.glass].set(v["kt"].astype(dtype))
+        # glass hides the sky as it shadows the lights: all but kt² of it
+        passes = jnp.where(jnp.asarray(self.structure.mask("trpa")), new.get("kt", params.kt) ** 2, 0)
+        new["occlusion"] = jnp.zeros_like(params.radii).at[self.rounded].set(v["occlusion"].astype(dtype)) * (1 - passes)
         return dataclasses.replace(params, **new)
 
     def linear(self, colours, xy, y: dict):

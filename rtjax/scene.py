@@ -109,6 +109,9 @@ class Params(eqx.Module):
     refp: Float[Array, " 3"]
     vang: Float[Array, " 2"]  # ha, va in degrees
     textures: tuple[Float[Array, "h w 3"], ...] = ()  # texels 0..255, one per tmap sphere
+    #: sky occlusion's weight per sphere (`rtjax.occlusion`), not part of the deck language;
+    #: None: the assignment's ambient term, no occlusion code
+    occlusion: Float[Array, " n"] | None = None
 
     def astype(self, dtype) -> "Params":
         return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), self)
@@ -131,8 +134,13 @@ class Scene(eqx.Module):
         for k, v in params.items():
             if k not in new:
                 raise TypeError(f"unknown scene parameter {k!r}")
-            old = new[k]
-            new[k] = tuple(jnp.asarray(t, jnp.result_type(o)) for t, o in zip(v, old)) if k == "textures" else jnp.asarray(v, jnp.result_type(old))
+            old = new[k] if new[k] is not None else p.radii  # a field not set takes the radii's dtype
+            if v is None:
+                new[k] = None
+            elif k == "textures":
+                new[k] = tuple(jnp.asarray(t, jnp.result_type(o)) for t, o in zip(v, old))
+            else:
+                new[k] = jnp.asarray(v, jnp.result_type(old))
         return Scene(self.structure, Params(**new))
 
     def resized(self, width: int, height: int | None = None) -> "Scene":

@@ -35,8 +35,12 @@ def local_light(
     cos_g: Float[Array, " p"],
     visibility: Float[Array, " p"],
     light_color: Float[Array, " 3"],
+    sky: Float[Array, " p"] | None = None,
 ) -> Float[Array, "3 p"]:
-    """One light's term: ke·d·L + S·[(1 − ke)·max(N·L, 0)·d·L + ks·L·max(cos γ, 0)^β·[N·L > 0]]."""
+    """One light's term: ke·d·L + S·[(1 − ke)·max(N·L, 0)·d·L + ks·L·max(cos γ, 0)^β·[N·L > 0]];
+    with `sky` (the share of the sky each hit sees, `rtjax.occlusion`) the ambient part
+    is ke·sky·d·L."""
     diffuse = (1 - ke) * jnp.maximum(nl, 0)
     specular = jnp.where(nl > 0, ks * safe_pow(cos_g, beta), 0)
-    return (spread(ke + visibility * diffuse) * d + spread(visibility * specular)) * light_color[:, None]
+    ambient = ke if sky is None else ke * sky
+    return (spread(ambient + visibility * diffuse) * d + spread(visibility * specular)) * light_color[:, None]

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int, UInt
 
-from . import edges, spheres
+from . import edges, occlusion, spheres
 from .compact import pack
 from .numerics import dot, lookup, normalize, safe_sqrt, spread, take_rows
 from .scene import GLASS, MIRROR, OPAQUE, TEXTURE, Params, Structure
@@ -99,6 +99,8 @@ def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, mode
     idx = jnp.maximum(hit.index, 0)
     d = surface_colour(s, p, m, idx, hit.normal_out)
     ks, beta = lookup(m.ks, idx), lookup(m.beta, idx)
+    sky = None if p.occlusion is None else \
+        occlusion.sky_visibility(hit.point, hit.normal_out, hit.index, p.centers, p.radii, p.occlusion)
     visible = []
     for i, (light, colour) in enumerate(zip(m.lights, p.light_colors)):
         nl, cos_g = phong_angles(n, v, light)
@@ -110,9 +112,9 @@ def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, mode
             shadow = edges.soft_shadow(hit, light, p.centers, p.radii, m.tmin, m.shadow_factor, motion, width,
                                        sided=mode == SIDED)
             vis, near = shadow.here, near | shadow.near
-        term = local_light(d, ks, beta, p.ke, nl, cos_g, vis, colour)
+        term = local_light(d, ks, beta, p.ke, nl, cos_g, vis, colour, sky)
         if mode == SIDED:
-            flip = flip.nearer(edges.Flip(shadow.x, local_light(d, ks, beta, p.ke, nl, cos_g, shadow.there, colour) - term))
+            flip = flip.nearer(edges.Flip(shadow.x, local_light(d, ks, beta, p.ke, nl, cos_g, shadow.there, colour, sky) - term))
         total = total + term
         visible.append(vis)
     return Shade(total, tuple(visible), flip, near)

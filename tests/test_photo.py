@@ -115,7 +115,7 @@ def test_photo_fit_through_another_camera(tmp_path):
     for s in v.spheres:
         assert CONFIDENCE * s["sigma_px"] > 1 and s["sigma_depth_px"] > 0.99 * s["sigma_px"] and len(s["sigma"]) == 3, s
     assert v.losses["end"] < v.losses["start"] and v.losses["end"] < 0.5 * v.losses["flat"]
-    assert set(res.photo) >= {"gain", "gamma", "blur", "field", "ke", "albedo", "dilate"}
+    assert set(res.photo) >= {"gain", "gamma", "blur", "field", "ke", "albedo", "dilate", "occlusion"}
 
 
 @pytest.mark.slow
