@@ -59,8 +59,10 @@ def sky_visibility(
     n0, n1, n2 = components(normal)
     w0, w1, w2 = (centers[:, k, None] - q[None] for k, q in enumerate((p0, p1, p2)))  # (N, P) toward each centre
     d2 = w0 * w0 + w1 * w1 + w2 * w2
-    inside = radii[:, None] ** 2 >= d2  # a hit inside another sphere: it hides half the sky and more
-    sin2_s = jnp.where(inside, 1 - _EDGE, radii[:, None] ** 2 / jnp.where(inside, 1, d2))
+    # sin²σ below 1 (a hit on or inside another sphere, or within rounding of it, as a
+    # floor's point where a ball rests on it is in float32): its sky hidden as if
+    # just outside, and the clipped branch's derivatives finite
+    sin2_s = jnp.minimum(radii[:, None] ** 2 / jnp.where(d2 > 0, d2, 1), 1 - _EDGE)
     cos_t = (n0[None] * w0 + n1[None] * w1 + n2[None] * w2) / jnp.sqrt(jnp.where(d2 > 0, d2, 1))
     own = jnp.arange(centers.shape[0])[:, None] == index[None]
     weights = jnp.broadcast_to(weights, radii.shape)

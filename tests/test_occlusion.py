@@ -142,3 +142,21 @@ def test_derivatives_with_occlusion_equal_central_differences(edges):
     base_jvp, base_fd = derivatives(None)
     jvp, fd = jvp - base_jvp, fd - base_fd
     assert abs(fd) > 1 and abs(jvp - fd) <= 2e-5 * abs(fd), (jvp, fd)
+
+
+@pytest.mark.parametrize("edges", [0.0, 1.0])
+def test_a_ball_resting_on_the_floor_has_finite_derivatives_in_float32(edges):
+    """The floor's points where the ball rests on it lie, in float32, on its surface or
+    within rounding inside it (sin²σ = 1): the image and its gradient in every
+    parameter stay finite."""
+    s = scene().replace(occlusion=np.ones(2))
+    assert s.params.centers.dtype == jnp.float32
+
+    def f(p):
+        return rtjax.render(rtjax.Scene(s.structure, p), edges=edges)
+
+    image = f(s.params)
+    grads = jax.grad(lambda p: jnp.sum(f(p)))(s.params)
+    assert bool(jnp.all(jnp.isfinite(image)))
+    assert all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree_util.tree_leaves(grads))
+    assert float(jnp.sum(grads.occlusion ** 2)) > 0
