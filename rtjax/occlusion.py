@@ -6,7 +6,8 @@ photograph's sky light does not reach the floor under a ball or the gap between 
 balls: the contact shadows a photo shows around every sphere, which a model without
 them reads as geometry (docs/FITTING.md). With `Params.occlusion` set (one weight per
 sphere; `None`, the default, leaves the assignment's shading and adds no code), the
-ambient term of a hit becomes ke·V·d·L with
+ambient term of a hit seen directly (not in a mirror or through glass:
+`trace.primary_sky`) becomes ke·V·d·L with
 
     V = clip(1 − Σ_j w_j·F_j, 0, 1),
 

@@ -83,13 +83,27 @@ class Shade(NamedTuple):
     near: "Bool[Array, ' p'] | None"  # box and sided modes: some light's shadow edge may cross the hit's box
 
 
+def primary_sky(p: Params, hit: spheres.Hit, primary: Bool[Array, " p"]) -> Float[Array, " p"]:
+    """The share of the sky each hit seen directly (`primary`) sees (`rtjax.occlusion`,
+    weights `p.occlusion`), 1 at the rest: contact shadows are modelled where they are
+    seen, not in mirrors or through glass. Computed only in a segment with such hits
+    (`lax.cond`), so the chain's later segments skip its N·P form factors at run time."""
+
+    def seen():
+        sky = occlusion.sky_visibility(hit.point, hit.normal_out, hit.index, p.centers, p.radii, p.occlusion)
+        return jnp.where(primary, sky, 1)
+
+    return jax.lax.cond(jnp.any(primary & hit.live), seen, lambda: jnp.ones_like(hit.t))
+
+
 def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, mode: Mode,
-              motion: edges.Motion | None = None, width=0.0) -> Shade:
+              motion: edges.Motion | None = None, width=0.0, primary: Bool[Array, " p"] | None = None) -> Shade:
     """Local light at each hit: Σ over lights of ambient, diffuse and specular with shadows.
 
     n: the unit normal facing the ray; v: toward where the ray came from. In box and
     sided modes, `motion` (the hit point's motion per sample step) and `width` (the box
     in sample steps) place each light's nearest shadow edge (`edges.soft_shadow`).
+    `primary`: the hits seen directly, where sky occlusion applies (`primary_sky`).
     """
     total = jnp.zeros_like(n)
     flip = edges.Flip.none(n[0]) if mode == SIDED else None
@@ -99,8 +113,7 @@ def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, mode
     idx = jnp.maximum(hit.index, 0)
     d = surface_colour(s, p, m, idx, hit.normal_out)
     ks, beta = lookup(m.ks, idx), lookup(m.beta, idx)
-    sky = None if p.occlusion is None else \
-        occlusion.sky_visibility(hit.point, hit.normal_out, hit.index, p.centers, p.radii, p.occlusion)
+    sky = None if p.occlusion is None else primary_sky(p, hit, hit.live if primary is None else primary)
     visible = []
     for i, (light, colour) in enumerate(zip(m.lights, p.light_colors)):
         nl, cos_g = phong_angles(n, v, light)
@@ -216,7 +229,7 @@ def segment(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: 
     entering = hit.entering
     n = jnp.where(entering, hit.normal_out, -hit.normal_out)
     motion = None if rays.diff is None else edges.hit_motion(hit, o, d, rays.diff)
-    shade = shade_hit(s, p, m, hit, n, -d, mode, motion, width)
+    shade = shade_hit(s, p, m, hit, n, -d, mode, motion, width, rays.level == 0)
     key = rays.key if rays.key is None else hit_key(rays.key, hit, shade.visibility, active)
     flip = rays.flip
     if flip is not None:  # this hit's nearest shadow edge, weighted like the colour it would change

@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import quick_xla
 
 import rtjax
 from rtjax.occlusion import form_factor
@@ -119,7 +120,7 @@ def test_derivatives_with_occlusion_equal_central_differences(edges):
     occlusion weights (float64): what occlusion adds to the derivative against what it
     adds to central differences (the image's kinks, at terminators and, in the
     silhouette-aware mode, its edges' model, part the two already without occlusion);
-    reverse mode equals forward mode."""
+    in plain mode, reverse mode equals forward mode."""
     rng = np.random.default_rng(1)
     weights = jnp.asarray(rng.standard_normal((18, 24, 3)))
     dc, dr, dw = rng.standard_normal(3), rng.standard_normal(), rng.standard_normal(2)
@@ -133,8 +134,10 @@ def test_derivatives_with_occlusion_equal_central_differences(edges):
                               occlusion=None if occlusion is None else p.occlusion + t * dw)
             return jnp.sum(weights * rtjax.render(moved, edges=edges))
 
-        _, jvp = jax.jvp(f, (0.0,), (1.0,))
-        assert float(jax.grad(f)(0.0)) == pytest.approx(float(jvp), rel=1e-9)
+        with quick_xla():  # a tolerance check (conftest.quick_xla); these programs are compiled only here
+            _, jvp = jax.jvp(f, (0.0,), (1.0,))
+            if not edges:  # the mode's reverse mode is checked against its forward mode in test_reverse
+                assert float(jax.grad(f)(0.0)) == pytest.approx(float(jvp), rel=1e-9)
         h = 1e-6
         return float(jvp), float((f(h) - f(-h)) / (2 * h))
 
@@ -144,16 +147,15 @@ def test_derivatives_with_occlusion_equal_central_differences(edges):
     assert abs(fd) > 1 and abs(jvp - fd) <= 2e-5 * abs(fd), (jvp, fd)
 
 
-@pytest.mark.parametrize("edges", [0.0, 1.0])
-def test_a_ball_resting_on_the_floor_has_finite_derivatives_in_float32(edges):
+def test_a_ball_resting_on_the_floor_has_finite_derivatives_in_float32():
     """The floor's points where the ball rests on it lie, in float32, on its surface or
     within rounding inside it (sin²σ = 1): the image and its gradient in every
-    parameter stay finite."""
+    parameter stay finite (the sky share is the same function in every mode)."""
     s = scene().replace(occlusion=np.ones(2))
     assert s.params.centers.dtype == jnp.float32
 
     def f(p):
-        return rtjax.render(rtjax.Scene(s.structure, p), edges=edges)
+        return rtjax.render(rtjax.Scene(s.structure, p))
 
     image = f(s.params)
     grads = jax.grad(lambda p: jnp.sum(f(p)))(s.params)
