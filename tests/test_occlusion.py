@@ -162,3 +162,29 @@ def test_a_ball_resting_on_the_floor_has_finite_derivatives_in_float32():
     assert bool(jnp.all(jnp.isfinite(image)))
     assert all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree_util.tree_leaves(grads))
     assert float(jnp.sum(grads.occlusion ** 2)) > 0
+
+
+def test_only_hits_seen_directly_are_occluded():
+    """A mirror beside the ball: the pixels whose ray meets the mirror first keep their
+    colour with occlusion on (the floor seen in it keeps the full ambient term), while
+    floor pixels seen directly near the ball darken."""
+    s = rtjax.parse_deck(DECK.replace("rend x.ras", "sphe 4.5 1 2 2\nmirr\nrend x.ras")).frames[0].scene
+    s = s.astype(jnp.float64)
+    assert s.structure.kinds == ("opaq", "opaq", "mirr")
+    plain = np.asarray(rtjax.render(s))
+    occluded = np.asarray(rtjax.render(s.replace(occlusion=np.array([0.0, 1.0, 1.0]))))
+    p = s.params
+    _, d = rtjax.camera.primary_rays(p.eye, p.refp, p.vang, s.structure.width, s.structure.height, jnp.array([0.5, 0.5]))
+    eye, dirs = np.asarray(p.eye), np.asarray(d).T
+    first = []
+    for ray in dirs:
+        ts = []
+        for c, r in zip(np.asarray(p.centers), np.asarray(p.radii)):
+            b = ray @ (eye - c)
+            disc = b * b - (eye - c) @ (eye - c) + r * r
+            ts.append(-b - np.sqrt(disc) if disc > 0 and -b - np.sqrt(disc) > 0 else np.inf)
+        first.append(int(np.argmin(ts)) if np.isfinite(min(ts)) else -1)
+    first = np.array(first).reshape(plain.shape[:2])
+    assert (first == 2).sum() >= 10
+    np.testing.assert_array_equal(occluded[first == 2], plain[first == 2])
+    assert (plain - occluded)[first == 0].max() > 5
