@@ -63,8 +63,9 @@ def sky_visibility(
     # sin²σ below 1 (a hit on or inside another sphere, or within rounding of it, as a
     # floor's point where a ball rests on it is in float32): its sky hidden as if
     # just outside, and the clipped branch's derivatives finite
-    sin2_s = jnp.minimum(radii[:, None] ** 2 / jnp.where(d2 > 0, d2, 1), 1 - _EDGE)
-    cos_t = (n0[None] * w0 + n1[None] * w1 + n2[None] * w2) / jnp.sqrt(jnp.where(d2 > 0, d2, 1))
+    d2 = jnp.where(d2 > 0, d2, 1)  # 0 only for a hit at a centre, where no sphere is left out
+    sin2_s = jnp.minimum(radii[:, None] ** 2 / d2, 1 - _EDGE)
+    cos_t = (n0[None] * w0 + n1[None] * w1 + n2[None] * w2) / jnp.sqrt(d2)
     own = jnp.arange(centers.shape[0])[:, None] == index[None]
     weights = jnp.broadcast_to(weights, radii.shape)
     hidden = jnp.sum(jnp.where(own, 0, weights[:, None] * form_factor(cos_t, sin2_s)), 0)

@@ -50,8 +50,28 @@ def monte_carlo_hidden(point, normal, centers, radii, weights, count=200_000, se
         oc = np.asarray(c) - point
         b = dirs @ oc
         disc = b * b - (oc @ oc - rad * rad)
-        total += w * np.mean((disc > 0) & (b + np.sqrt(np.maximum(disc, 0)) > 0) & (b - np.sqrt(np.maximum(disc, 0)) > 0))
+        total += w * np.mean((disc > 0) & (b - np.sqrt(np.maximum(disc, 0)) > 0))  # the near root in front
     return total
+
+
+def first_hits(s: rtjax.Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each pixel's ray through its centre (the renderer's camera, NumPy from there):
+    the sphere it meets first (H, W; −1 for none), the hit point (H, W, 3) and that
+    sphere's outward normal there, in float64."""
+    p = s.params
+    _, d = rtjax.camera.primary_rays(p.eye, p.refp, p.vang, s.structure.width, s.structure.height, jnp.array([0.5, 0.5]))
+    eye, dirs = np.asarray(p.eye, np.float64), np.asarray(d, np.float64).T  # (P, 3)
+    centers, radii = np.asarray(p.centers, np.float64), np.asarray(p.radii, np.float64)
+    oc = eye - centers  # (N, 3)
+    b = dirs @ oc.T  # (P, N)
+    disc = b * b - np.sum(oc * oc, 1) + radii**2
+    t = -b - np.sqrt(np.maximum(disc, 0))
+    t = np.where((disc > 0) & (t > 0), t, np.inf)
+    index = np.where(np.isfinite(t.min(1)), t.argmin(1), -1)
+    point = eye + t.min(1)[:, None] * dirs
+    normal = (point - centers[np.maximum(index, 0)]) / radii[np.maximum(index, 0)][:, None]
+    shape = (s.structure.height, s.structure.width)
+    return index.reshape(shape), point.reshape(*shape, 3), normal.reshape(*shape, 3)
 
 
 @pytest.mark.parametrize("cos_t, sin2_s", [(1.0, 0.1), (0.6, 0.3), (0.3, 0.3), (0.0, 0.5), (-0.4, 0.6), (-0.9, 0.5), (0.2, 0.999)])
@@ -89,26 +109,18 @@ def test_floor_beside_a_ball_sees_less_sky():
     plain = np.asarray(rtjax.render(s))
     occluded = np.asarray(rtjax.render(s.replace(occlusion=np.array([0.0, 1.0]))))
     assert np.array_equal(np.asarray(rtjax.render(s.replace(occlusion=np.zeros(2)))), plain)
-    _, d = rtjax.camera.primary_rays(p.eye, p.refp, p.vang, s.structure.width, s.structure.height, jnp.array([0.5, 0.5]))
-    eye, dirs = np.asarray(p.eye), np.asarray(d).T
     centers, radii = np.asarray(p.centers), np.asarray(p.radii)
+    index, points, normals = first_hits(s)
     ambient = 0.4 * np.array([0.8, 0.7, 0.6]) * np.array([200, 180, 160])
     checked = 0
-    for k, ray in enumerate(dirs):
-        row, col = divmod(k, s.structure.width)
-        ts = []
-        for c, r in zip(centers, radii):
-            b = ray @ (eye - c)
-            disc = b * b - (eye - c) @ (eye - c) + r * r
-            ts.append(-b - np.sqrt(disc) if disc > 0 else np.inf)
+    for k, (row, col) in enumerate(np.ndindex(*index.shape)):
         loss = plain[row, col] - occluded[row, col]
-        if ts[1] < ts[0]:  # the ball: the floor is no occluder
+        if index[row, col] == 1:  # the ball: the floor is no occluder
             np.testing.assert_array_equal(loss, 0)
             continue
-        if not np.isfinite(ts[0]) or plain[row, col].max() >= 255:
+        if index[row, col] != 0 or plain[row, col].max() >= 255:
             continue
-        point = eye + ts[0] * ray
-        hidden = monte_carlo_hidden(point, (point - centers[0]) / radii[0], centers[1:], radii[1:], [1.0], count=100_000, seed=k)
+        hidden = monte_carlo_hidden(points[row, col], normals[row, col], centers[1:], radii[1:], [1.0], count=100_000, seed=k)
         np.testing.assert_allclose(loss, ambient * hidden, atol=0.01 * ambient.max() + 1e-9, err_msg=f"pixel {row, col}")
         checked += hidden > 0.01
     assert checked >= 20  # pixels near the ball's foot, where the term matters
@@ -173,18 +185,7 @@ def test_only_hits_seen_directly_are_occluded():
     assert s.structure.kinds == ("opaq", "opaq", "mirr")
     plain = np.asarray(rtjax.render(s))
     occluded = np.asarray(rtjax.render(s.replace(occlusion=np.array([0.0, 1.0, 1.0]))))
-    p = s.params
-    _, d = rtjax.camera.primary_rays(p.eye, p.refp, p.vang, s.structure.width, s.structure.height, jnp.array([0.5, 0.5]))
-    eye, dirs = np.asarray(p.eye), np.asarray(d).T
-    first = []
-    for ray in dirs:
-        ts = []
-        for c, r in zip(np.asarray(p.centers), np.asarray(p.radii)):
-            b = ray @ (eye - c)
-            disc = b * b - (eye - c) @ (eye - c) + r * r
-            ts.append(-b - np.sqrt(disc) if disc > 0 and -b - np.sqrt(disc) > 0 else np.inf)
-        first.append(int(np.argmin(ts)) if np.isfinite(min(ts)) else -1)
-    first = np.array(first).reshape(plain.shape[:2])
+    first, _, _ = first_hits(s)
     assert (first == 2).sum() >= 10
     np.testing.assert_array_equal(occluded[first == 2], plain[first == 2])
     assert (plain - occluded)[first == 0].max() > 5
