@@ -13,7 +13,8 @@ full-size level and names every such cause:
   mean colour, or the start's geometry under the fitted appearance and camera (the
   geometry moved without explaining anything);
 - a free centre is determined more loosely than the goal a fit of a photo is held to:
-  `CONFIDENCE` times its σ exceeds `LIMITS` (pixel footprints at its distance).
+  `CONFIDENCE` times its σ exceeds `LIMITS` (pixel footprints at its distance), or
+  the Jacobian at the end is not finite (a singular render), so that no σ exists.
 
 The uncertainty comes from the Jacobian J and residuals r at the end, over all n free
 coordinates (appearance and camera included, so that they are marginalised out): the
@@ -157,9 +158,16 @@ def judge(problem, stepper, y: dict) -> Verdict:
     flat = float(0.5 * np.mean(r**2))
     losses = {"end": end, "start": start, "flat": flat}
 
-    judged = problem.jac == "fwd" and hasattr(state.f_info, "jac")  # a least-squares solver's forward-mode Jacobian
-    spheres = uncertainty(problem, state, y) if judged else []
-    causes = []
+    causes, spheres = [], []
+    if problem.jac == "fwd" and hasattr(state.f_info, "jac"):  # a least-squares solver's forward-mode Jacobian
+        jac = np.asarray(state.f_info.jac.as_matrix(), np.float64)
+        residual = np.asarray(state.f_info.residual, np.float64).ravel()
+        bad = int(np.count_nonzero(~np.isfinite(jac))) + int(np.count_nonzero(~np.isfinite(residual)))
+        if bad:
+            causes.append(f"undetermined: the Jacobian and residuals at the end hold {bad} non-finite values "
+                          "(the render is singular there): no uncertainty can be given")
+        else:
+            spheres = uncertainty(problem, jac, residual, y)
     bounds = bounds_reached(y, objective.photo)
     if bounds:
         causes.append("ran away: " + ", ".join(f"{k} = {v:.4g}" for k, v in bounds.items())
@@ -181,18 +189,16 @@ def judge(problem, stepper, y: dict) -> Verdict:
     return Verdict(ok=not causes, causes=causes, losses=losses, spheres=spheres, bounds=bounds)
 
 
-def uncertainty(problem, state, y: dict) -> list[dict]:
+def uncertainty(problem, jac: np.ndarray, r: np.ndarray, y: dict) -> list[dict]:
     """Per free centre at `y`, σ from the cluster-robust covariance (per axis, 'sigma';
     along the worst direction in scene units and pixels, 'sigma_units', 'sigma_px';
     along the view, 'sigma_depth_px') and from the Gauss–Newton one
     ('sigma_statistical_px'), the bias estimate ('bias_px', `EDGE_SHARE`) and σ with
-    it in quadrature ('sigma_total_px', what the verdict uses); the Jacobian and
-    residuals come from a solver `state` evaluated at `y`."""
+    it in quadrature ('sigma_total_px', what the verdict uses); `jac` (m × n) and the
+    residuals `r` (m) are a solver's linearisation at `y`, finite."""
     selection = problem.selection
     if "centers" not in selection.index:
         return []
-    jac = np.asarray(state.f_info.jac.as_matrix(), np.float64)
-    r = np.asarray(state.f_info.residual, np.float64).ravel()
     m, n = jac.shape
     flat, unravel = jax.flatten_util.ravel_pytree(y)
     where = unravel(jnp.arange(flat.size, dtype=flat.dtype))

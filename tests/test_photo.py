@@ -142,3 +142,39 @@ def test_cli_photo_of_nothing_exits_1_naming_the_cause(tmp_path):
     moved_by = np.linalg.norm(np.asarray(fitted.params.centers, np.float64)
                               - np.asarray(truth.params.centers, np.float64), axis=1)
     np.testing.assert_allclose([s["moved_units"] for s in verdict["spheres"]], moved_by, rtol=1e-4, atol=1e-5)
+
+
+def test_verdict_names_a_non_finite_jacobian(truth):
+    """A fit whose linearisation at the end is not finite (a render singular there) gets
+    a verdict naming that cause, with no uncertainty, instead of a linear-algebra error:
+    the fit's own stepper with one Jacobian entry replaced by NaN."""
+    from types import SimpleNamespace
+
+    from fitting.problem import Problem
+    from fitting.solvers import Stepper
+    from fitting.verdict import judge
+
+    small = scene_from_text(truth_deck(16))
+    target = np.asarray(rtjax.render(small), np.float64)
+    options = fitting.FitOptions(photo=True)
+    problem = Problem.build(small, target, "centers", None, options)
+    stepper = Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac)
+
+    class Poisoned:
+        def init(self, y, level):
+            return stepper.init(y, level)
+
+        def step(self, y, state, level):
+            y, state, *rest = stepper.step(y, state, level)
+            jac = np.array(state.f_info.jac.as_matrix(), np.float64)
+            jac[0, 0] = np.nan
+            info = SimpleNamespace(jac=SimpleNamespace(as_matrix=lambda: jac), residual=state.f_info.residual)
+            return (y, SimpleNamespace(f_info=info), *rest)
+
+    healthy = judge(problem, stepper, problem.y0)
+    assert [s["index"] for s in healthy.spheres] == [0, 1] and all(np.isfinite(s["sigma_px"]) for s in healthy.spheres)
+    v = judge(problem, Poisoned(), problem.y0)
+    assert not v.ok and v.spheres == []
+    assert [c for c in v.causes if c.startswith("undetermined:")] == [
+        "undetermined: the Jacobian and residuals at the end hold 1 non-finite values (the render is singular there): "
+        "no uncertainty can be given"]
