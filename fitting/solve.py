@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Protocol
 
+import jax
 import numpy as np
 
 import rtjax
@@ -199,6 +200,7 @@ class Single:
     def __init__(self, stepper: Stepper, ahead: threading.Thread | None = None):
         self.stepper = stepper
         self.ahead = ahead  # compiling the whole-image level's step (`Stepper.compile_ahead`)
+        self.last = None  # the last step's (y, state, loss, samples)
 
     def init(self, y, samples):
         if self.ahead is not None and samples.whole:
@@ -207,6 +209,7 @@ class Single:
 
     def step(self, y, state, samples, active):
         y, state, done, code, loss = self.stepper.step(y, state, samples)
+        self.last = (y, state, float(loss), samples)
         return y, state, np.array([bool(done)]), np.array([int(code)], np.int32), np.array([float(loss)])
 
     def keep(self, better, new, old):
@@ -214,6 +217,17 @@ class Single:
 
     def unstack(self, y, count):
         return [y]
+
+    def end(self, y, samples) -> tuple[float, object] | None:
+        """(loss, solver state) of the last step if it was on the level `samples` and
+        ended at `y` (a least-squares solver's state holds its accepted point's
+        residuals and Jacobian), else None."""
+        if self.last is None or self.last[3] is not samples:
+            return None
+        last, state, loss, _ = self.last
+        a, b = jax.tree_util.tree_leaves(last), jax.tree_util.tree_leaves(y)
+        same = len(a) == len(b) and all(np.array_equal(np.asarray(u), np.asarray(v)) for u, v in zip(a, b))
+        return (loss, state) if same else None
 
 
 def fit_starts(problem: Problem, stepper: Steps, ys, begun: Sequence[rtjax.Scene], options: FitOptions,
@@ -350,13 +364,13 @@ def fit(scene: rtjax.Scene | Sequence[rtjax.Scene], target, free: str | Sequence
     stepper = Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac)
     pyramid = problem.pyramid
     ahead = stepper.compile_ahead(problem.y0, pyramid[-1]) if len(pyramid) > 1 and pyramid[-1].whole else None
-    result = fit_starts(problem, Single(stepper, ahead), problem.y0, [problem.scene], options, callback,
-                        started=started).best
+    single = Single(stepper, ahead)
+    result = fit_starts(problem, single, problem.y0, [problem.scene], options, callback, started=started).best
     if ahead is not None:
         ahead.join()
     if "textures" in problem.selection.families:
         result.texels = coverage(views, options.mask, options.depth, smoothed=bool(options.smooth))
     if options.photo or options.nuisance:
-        result.verdict = judge(problem, stepper, result.y)
+        result.verdict = judge(problem, stepper, result.y, single.end(result.y, problem.pyramid[-1]))
     result.times["total"] = time.perf_counter() - started  # the coverage and verdict included
     return result

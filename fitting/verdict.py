@@ -133,13 +133,15 @@ def bounds_reached(y: dict, photo=None) -> dict[str, float]:
     return out
 
 
-def judge(problem, stepper, y: dict) -> Verdict:
+def judge(problem, stepper, y: dict, end: tuple[float, object] | None = None) -> Verdict:
     """The verdict on a fit of `problem` (a `fitting.problem.Problem`) that ended at `y`.
 
     `stepper`: the fit's `solvers.Stepper`; its compiled init and step evaluate the
     full-size level at `y` and at the start's geometry (the first step of a solver
     evaluates its start), so that nothing new is compiled; the Jacobian comes from the
-    step's linearisation (forward-mode fits; 'bwd' fits report no uncertainty)."""
+    step's linearisation (forward-mode fits; 'bwd' fits report no uncertainty).
+    `end`: (loss, solver state) of the fit's last step on that level where it ended at
+    `y` (`solve.Single.end`): the same numbers, one full-size evaluation saved."""
     level = problem.pyramid[-1]
     objective = problem.objective
 
@@ -148,7 +150,7 @@ def judge(problem, stepper, y: dict) -> Verdict:
         _, state, _, _, loss = stepper.step(at, state, level)
         return float(loss), state
 
-    end, state = evaluate(y)
+    end, state = evaluate(y) if end is None else end
     start, _ = evaluate(dict(y, scene=problem.y0["scene"]))
     target = np.asarray(level.target, np.float64)
     weight = np.asarray(level.weight, np.float64)

@@ -5,6 +5,7 @@ what the photo cannot tell, and a fit that explains nothing exits 1 naming the c
 
 from __future__ import annotations
 
+import copy
 import json
 import subprocess
 import sys
@@ -144,21 +145,48 @@ def test_cli_photo_of_nothing_exits_1_naming_the_cause(tmp_path):
     np.testing.assert_allclose([s["moved_units"] for s in verdict["spheres"]], moved_by, rtol=1e-4, atol=1e-5)
 
 
-def test_verdict_names_a_non_finite_jacobian(truth):
+@pytest.fixture(scope="module")
+def small_fit():
+    """A photo fit's problem and stepper at 16 px (the truth as its own target)."""
+    from fitting.problem import Problem
+    from fitting.solvers import Stepper
+
+    small = scene_from_text(truth_deck(16))
+    options = fitting.FitOptions(photo=True)
+    problem = Problem.build(small, np.asarray(rtjax.render(small), np.float64), "centers", None, options)
+    return problem, Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac)
+
+
+def test_verdict_from_the_last_step_equals_a_fresh_evaluation(small_fit):
+    """`judge` given the fit's last step on the full-size level (its loss and solver
+    state) says exactly what it says when it evaluates that point afresh."""
+    from fitting.solve import Single
+    from fitting.verdict import judge
+
+    problem, stepper = small_fit
+    level = problem.pyramid[-1]
+    single = Single(stepper)
+    y, state = problem.y0, stepper.init(problem.y0, level)
+    for _ in range(3):
+        y, state, *_ = single.step(y, state, level, None)
+    assert single.end(y, copy.copy(level)) is None  # another level's
+    assert single.end(problem.y0, level) is None  # not where it ended
+    end = single.end(y, level)
+    assert end is not None
+    fresh, reused = judge(problem, stepper, y), judge(problem, stepper, y, end)
+    assert reused.as_dict() == fresh.as_dict()
+    assert [s["index"] for s in fresh.spheres] == [0, 1] and all(np.isfinite(s["sigma_px"]) for s in fresh.spheres)
+
+
+def test_verdict_names_a_non_finite_jacobian(small_fit):
     """A fit whose linearisation at the end is not finite (a render singular there) gets
     a verdict naming that cause, with no uncertainty, instead of a linear-algebra error:
     the fit's own stepper with one Jacobian entry replaced by NaN."""
     from types import SimpleNamespace
 
-    from fitting.problem import Problem
-    from fitting.solvers import Stepper
     from fitting.verdict import judge
 
-    small = scene_from_text(truth_deck(16))
-    target = np.asarray(rtjax.render(small), np.float64)
-    options = fitting.FitOptions(photo=True)
-    problem = Problem.build(small, target, "centers", None, options)
-    stepper = Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac)
+    problem, stepper = small_fit
 
     class Poisoned:
         def init(self, y, level):
@@ -171,8 +199,6 @@ def test_verdict_names_a_non_finite_jacobian(truth):
             info = SimpleNamespace(jac=SimpleNamespace(as_matrix=lambda: jac), residual=state.f_info.residual)
             return (y, SimpleNamespace(f_info=info), *rest)
 
-    healthy = judge(problem, stepper, problem.y0)
-    assert [s["index"] for s in healthy.spheres] == [0, 1] and all(np.isfinite(s["sigma_px"]) for s in healthy.spheres)
     v = judge(problem, Poisoned(), problem.y0)
     assert not v.ok and v.spheres == []
     assert [c for c in v.causes if c.startswith("undetermined:")] == [
