@@ -118,15 +118,20 @@ def level_budget(pyramid, level: int, max_steps: int, steps: int, loss_scale: fl
     return max(1, (max_steps - steps) // share), False, 0.0
 
 
+#: Iterations in a row without a 1 % decrease of the best loss that end a level
+#: (`LevelBook`).
+PATIENCE = 2
+
+
 class LevelBook:
     """One level's bookkeeping for K starts at once (NumPy arrays): the best loss so far,
     iterations without a 1 % decrease, the result codes (`solvers.CODES`), and the rules
     that stop a start.
 
-    A coarse level stops a start once its best loss improves by less than 1 % over two
-    iterations (its optimum is only near the full-size one); a full-size one after four
-    such iterations (steps are rejected or negligible: the loss has levelled off, a
-    success). Any start stops once its best loss is at most `until` (a refinement takes
+    A level stops a start once its best loss improved by less than 1 % over `PATIENCE`
+    iterations in a row (steps rejected or negligible): on a coarse level its optimum is
+    only near the full-size one; on the full-size level the loss has levelled off, a
+    success. Any start stops once its best loss is at most `until` (a refinement takes
     over: a success), or when the solver says it is done, or when its loss is not finite
     (divergence; its best point is kept). Starts not `active` (padding) never step."""
 
@@ -154,10 +159,8 @@ class LevelBook:
         close = ok & ~finished & (self.best <= self.until)
         self.results[close] = CODES["successful"]
         finished |= close
-        if self.coarse:
-            stall = ok & ~finished & (self.stalled >= 2)
-        else:
-            stall = ok & ~finished & (self.stalled >= 4)
+        stall = ok & ~finished & (self.stalled >= PATIENCE)
+        if not self.coarse:
             self.levelled |= stall
             self.results[stall] = CODES["successful"]
             finished |= stall

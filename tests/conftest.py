@@ -73,6 +73,13 @@ def quick_build():
         yield
 
 
+def quick_env(**extra: str) -> dict[str, str]:
+    """The environment for a subprocess (an `rtjax` command, a notebook's quick run)
+    whose checks are exit codes, outputs, plumbing or tolerances: `quick_xla`'s build
+    in that process (JAX reads JAX_DISABLE_MOST_OPTIMIZATIONS at start-up), and `extra`."""
+    return dict(os.environ, JAX_DISABLE_MOST_OPTIMIZATIONS="1", **extra)
+
+
 # -- background work: subprocesses that some tests wait for ------------------------------
 #
 # XLA compiles on one core and the suite runs one test after another, so on a machine

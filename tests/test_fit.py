@@ -9,7 +9,7 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import ROOT, scene_from_text, truth_deck
+from conftest import ROOT, quick_env, scene_from_text, truth_deck
 
 import fitting
 import rtjax
@@ -43,6 +43,24 @@ def test_recovers_centres(truth, target):
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("coarse", [False, True])
+def test_a_level_stops_after_its_patience_without_progress(coarse):
+    """`LevelBook`: a start that improves its best loss by less than 1 % for PATIENCE
+    iterations in a row stops; a full-size level calls that a success (levelled off),
+    a coarse one hands over without a verdict. A 1 % gain in between restarts the count."""
+    from fitting.solve import PATIENCE, LevelBook
+    from fitting.solvers import CODES
+
+    book = LevelBook(2, coarse, 0.0)
+    losses = [[1.0, 1.0], [0.5, 0.5], [0.499, 0.4]] + [[0.498, 0.39]] * (PATIENCE - 1)
+    for loss in losses:
+        assert not book.stopped.any()
+        book.update(np.array(loss), np.zeros(2, bool), np.zeros(2, np.int32))
+    assert book.stopped.tolist() == [True, False]
+    assert book.levelled.tolist() == [not coarse, False]
+    assert book.results[0] == CODES["successful"] and book.best[0] == 0.498
+
+
 def test_recovers_colours_and_ke(truth, target):
     start = truth.replace(diffuse=np.full((2, 3), 0.5), ke=0.5)
     res = fitting.fit(start, target, "colors,ke", max_steps=20)
@@ -173,7 +191,7 @@ def test_cli_fit_writes_its_outputs(tmp_path, truth, target):
     proc = subprocess.run(
         [sys.executable, "-m", "rtjax", "fit", str(tmp_path / "start.dat"), str(tmp_path / "target.sunimg"),
          "--free", "ke", "-o", str(out), "--max-steps", "12"],
-        capture_output=True, text=True, cwd=ROOT, timeout=600,
+        capture_output=True, text=True, cwd=ROOT, env=quick_env(), timeout=600,
     )
     assert proc.returncode in (0, 1), proc.stderr
     assert "step   1" in proc.stdout and "ke" in proc.stdout and "Traceback" not in proc.stderr

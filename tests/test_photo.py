@@ -13,7 +13,7 @@ import sys
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import ROOT, scene_from_text, truth_deck
+from conftest import ROOT, quick_env, scene_from_text, truth_deck
 
 import fitting
 import rtjax
@@ -131,7 +131,7 @@ def test_cli_photo_of_nothing_exits_1_naming_the_cause(tmp_path):
     out = tmp_path / "out" / "fitted.dat"
     proc = subprocess.run([sys.executable, "-m", "rtjax", "fit", str(tmp_path / "start.dat"), str(tmp_path / "grey.png"),
                            "--photo", "--starts", "2", "--seed", "1", "--max-steps", "4", "-o", str(out)],
-                          capture_output=True, text=True, cwd=ROOT, timeout=600)
+                          capture_output=True, text=True, cwd=ROOT, env=quick_env(), timeout=600)
     assert proc.returncode == 1, proc.stdout + proc.stderr
     assert "verdict: FAILED" in proc.stdout and "Traceback" not in proc.stderr
     report = json.loads((tmp_path / "out" / "fitted.json").read_text())

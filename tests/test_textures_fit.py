@@ -9,7 +9,7 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import ROOT
+from conftest import ROOT, quick_env
 
 import fitting
 import rtjax
@@ -146,7 +146,7 @@ def test_cli_fits_textures_from_two_frames(ball, tmp_path):
     out = tmp_path / "out" / "fitted.dat"
     proc = subprocess.run([sys.executable, "-m", "rtjax", "fit", str(tmp_path / "start.dat"), str(tmp_path / "t0.sunimg"),
                            str(tmp_path / "t1.sunimg"), "--free", "textures", "-o", str(out), "--max-steps", "8"],
-                          capture_output=True, text=True, cwd=ROOT, timeout=600)
+                          capture_output=True, text=True, cwd=ROOT, env=quick_env(), timeout=600)
     assert proc.returncode in (0, 1), proc.stderr
     assert "texels seen" in proc.stdout and "not seen" in proc.stdout
     fitted = rtjax.load_deck(out)
