@@ -74,9 +74,9 @@ def quick_build():
 
 
 def quick_env(**extra: str) -> dict[str, str]:
-    """The environment for a subprocess (an `rtjax` command, a notebook's quick run)
-    whose checks are exit codes, outputs, plumbing or tolerances: `quick_xla`'s build
-    in that process (JAX reads JAX_DISABLE_MOST_OPTIMIZATIONS at start-up), and `extra`."""
+    """The environment for a subprocess (an `rtjax` command) whose checks are exit
+    codes, outputs, plumbing or tolerances: `quick_xla`'s build in that process (JAX
+    reads JAX_DISABLE_MOST_OPTIMIZATIONS at start-up), and `extra`."""
     return dict(os.environ, JAX_DISABLE_MOST_OPTIMIZATIONS="1", **extra)
 
 

@@ -42,7 +42,6 @@ def test_recovers_centres(truth, target):
     assert res.history and res.history[-1]["best_loss"] < res.history[0]["loss"]
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("coarse", [False, True])
 def test_a_level_stops_after_its_patience_without_progress(coarse):
     """`LevelBook`: a start that improves its best loss by less than 1 % for PATIENCE
@@ -61,6 +60,7 @@ def test_a_level_stops_after_its_patience_without_progress(coarse):
     assert book.results[0] == CODES["successful"] and book.best[0] == 0.498
 
 
+@pytest.mark.slow
 def test_recovers_colours_and_ke(truth, target):
     start = truth.replace(diffuse=np.full((2, 3), 0.5), ke=0.5)
     res = fitting.fit(start, target, "colors,ke", max_steps=20)

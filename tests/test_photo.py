@@ -157,6 +157,7 @@ def small_fit():
     return problem, Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac)
 
 
+@pytest.mark.slow
 def test_verdict_from_the_last_step_equals_a_fresh_evaluation(small_fit):
     """`judge` given the fit's last step on the full-size level (its loss and solver
     state) says exactly what it says when it evaluates that point afresh."""
@@ -178,6 +179,7 @@ def test_verdict_from_the_last_step_equals_a_fresh_evaluation(small_fit):
     assert [s["index"] for s in fresh.spheres] == [0, 1] and all(np.isfinite(s["sigma_px"]) for s in fresh.spheres)
 
 
+@pytest.mark.slow
 def test_verdict_names_a_non_finite_jacobian(small_fit):
     """A fit whose linearisation at the end is not finite (a render singular there) gets
     a verdict naming that cause, with no uncertainty, instead of a linear-algebra error:
