@@ -73,11 +73,11 @@ def quick_build():
         yield
 
 
-def quick_env(**extra: str) -> dict[str, str]:
+def quick_env() -> dict[str, str]:
     """The environment for a subprocess (an `rtjax` command) whose checks are exit
     codes, outputs, plumbing or tolerances: `quick_xla`'s build in that process (JAX
-    reads JAX_DISABLE_MOST_OPTIMIZATIONS at start-up), and `extra`."""
-    return dict(os.environ, JAX_DISABLE_MOST_OPTIMIZATIONS="1", **extra)
+    reads JAX_DISABLE_MOST_OPTIMIZATIONS at start-up)."""
+    return dict(os.environ, JAX_DISABLE_MOST_OPTIMIZATIONS="1")
 
 
 # -- background work: subprocesses that some tests wait for ------------------------------
