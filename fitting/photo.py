@@ -2,16 +2,24 @@
 
 A photograph is never the model's own render: its shading (measured materials,
 Fresnel, indirect light, soft shadows), its camera (exposure, white balance, lens blur,
-vignetting, a tone curve, JPEG) and its colours all differ. The geometry is carried by
-silhouettes, occlusion boundaries and shadow edges; everything else is absorbed by
-appearance parameters fitted jointly with it:
+vignetting, a tone curve, JPEG) and its colours all differ.
+
+The model renders in linear light, as the photo's renderer did: the deck's colours
+(diffuse, lights, background, texels) are display values, decoded by a power
+`DISPLAY_GAMMA` before the render, so that lights add, glass and its shadow pass kt per
+interface, and the ambient term mixes with the rest as they do in the photo. The
+geometry is carried by silhouettes, occlusion boundaries and shadow edges; everything
+else is absorbed by appearance parameters fitted jointly with it:
 
 - in the scene (`Photo.scene`): the diffuse colour of every opaque sphere but the one
   that looks largest (`Photo.anchor`, a floor say: the camera's gain sets its colour,
   so that gain and colours do not trade), per channel in [0, 1] ('albedo'); the
-  background colour, per channel in 0..255 ('background'); a factor per channel on every
-  light after the first ('lights'); the ambient coefficient ('ke'); each glass sphere's
-  transmission ('kt'); how dark the contact shadows are ('occlusion': the weight of every
+  background colour ('background'); a factor per channel on every light after the
+  first ('lights'); the ambient coefficient ('ke'); each glass sphere's transmission
+  ('kt'); the colour glass reflects by Fresnel's law ('fresnel', `rtjax.Params.fresnel`:
+  a photo's glass balls mirror their surroundings, most of all at their rims, which the
+  deck's glass does not, and a model without it reads the rims as depth); how dark the
+  contact shadows are ('occlusion': the weight of every
   sphere but a floor in the sky occlusion of the ambient term, `rtjax.occlusion`, times
   1 − kt² for glass, which passes that much as it does a light's shadow ray; a
   photo's sky light does not reach under and between its balls, and a model without
@@ -19,11 +27,11 @@ appearance parameters fitted jointly with it:
   sphere's radius but a floor's grows by that many pixel footprints at its distance):
   a tone curve, a blur taken in another colour space or darkened limbs move a
   photo's outlines by a fraction of a pixel, which the model would otherwise read as
-  depth;
-- in the camera (`Photo.camera`): the render's display values decoded to linear light
-  (a power `DISPLAY_GAMMA`) times a smooth illumination field (a low-order polynomial
-  in the image's coordinates, of log-gain: vignetting, sky light; 'field'), a
-  Gaussian lens blur in linear light ('blur'), the tone curve back to display values
+  depth. Colours are display values, as a deck gives them, per channel in [0, 1] of
+  the deck's range;
+- in the camera (`Photo.camera`): the render times a smooth illumination field (a
+  low-order polynomial in the image's coordinates, of log-gain: vignetting, sky light;
+  'field'), a Gaussian lens blur ('blur'), the tone curve to display values
   with a free exponent ('gamma'), a gain per channel on the display values ('gain':
   exposure and white balance; an exposure g before the curve is g^(γ/2.2) after it,
   the same model, but there gain and γ do not trade), and JPEG's chroma blur
@@ -46,8 +54,8 @@ import rtjax
 
 from .objective import chroma_blur, gaussian_blur
 
-#: The exponent that decodes the render's display values to linear light (the photo's
-#: renderer lit the deck's colours as sRGB values), and encodes them back.
+#: The exponent that decodes the deck's colours to linear light (the photo's renderer lit
+#: them as sRGB values), and encodes the render back.
 DISPLAY_GAMMA = 2.2
 #: A sphere larger than this many times the median radius is a floor (or a wall): its
 #: silhouette is the horizon, which `dilate` leaves alone.
@@ -86,10 +94,11 @@ class Range:
         return 1 / (1 + np.exp(-np.asarray(u, np.float64)))
 
 
-#: Each parameter's plausible range. Colours (albedo, background) are the scene's own,
-#: on their whole range (a deck's diffuse 0..1, its background 0..255 as a share of 255),
-#: whose ends are natural (a black or white channel); factors (lights, gain) are
-#: relative to the deck's values; the field's coefficients are log-gains at the image's
+#: Each parameter's plausible range. Colours (albedo, background, fresnel) are the
+#: scene's own, display values as a deck gives them (decoded for the render), on their
+#: whole range (a diffuse 0..1, a colour 0..255 as a share of 255), whose ends are
+#: natural (a black or white channel); factors (lights, gain) are relative to the
+#: deck's values; the field's coefficients are log-gains at the image's
 #: edges; blur and chroma are Gaussian σ in pixels (0.1, a sharp image, is a natural
 #: limit); ke and kt are the deck's own [0, 1]; dilate is in pixels; occlusion is an
 #: occluder's weight, from none (0) to one that sends back no light (1).
@@ -101,6 +110,7 @@ RANGES = {
     "kt": Range(0.0, 1.0, flags=(False, False)),
     "dilate": Range(-1.5, 1.5),
     "occlusion": Range(0.0, 1.0, flags=(False, False)),
+    "fresnel": Range(0.0, 1.0, flags=(False, False)),
     "gain": Range(0.25, 4.0, log=True),
     "field": Range(-1.0, 1.0),
     "blur": Range(0.1, 3.0, flags=(False, True)),
@@ -112,13 +122,19 @@ CAMERA = ("gain", "field", "blur", "gamma", "chroma")
 #: Start values of the camera's parameters: no change but a slight blur (a lens, a
 #: renderer's pixel filter) and JPEG's usual chroma blur.
 CAMERA_START = {"blur": 0.7, "gamma": 1.0, "chroma": 0.5}
-#: Colours (albedo, background), ke and kt start at the deck's, at least this far inside
-#: their [0, 1] range: at an end the logistic's slope would hold them there.
+#: Colours (albedo, background), ke and kt start at the deck's (glass's fresnel colour at
+#: the background's), at least this far inside their [0, 1] range: at an end the
+#: logistic's slope would hold them there.
 START_MARGIN = 0.02
 #: The occluders' weight at the start: halfway, as likely to send back light as not.
 OCCLUSION_START = 0.5
 #: The smooth illumination field's terms, in the image's coordinates u, v ∈ [−1, 1].
 FIELD_TERMS = 5
+
+
+def decode(x):
+    """Display values 0..1 to linear light (works on NumPy and JAX arrays)."""
+    return x ** DISPLAY_GAMMA
 
 
 def field_basis(u, v):
@@ -148,14 +164,16 @@ class Photo:
         self.opaque = opaque[opaque != self.anchor]
         self.glass = np.flatnonzero(s.mask("trpa"))
         self.rounded = np.flatnonzero(radii <= FLOOR_RATIO * np.median(radii)) if len(radii) else np.zeros(0, int)
+        background = np.clip(np.asarray(p.background, np.float64) / 255, START_MARGIN, 1 - START_MARGIN)
         start = {
             "albedo": np.clip(np.asarray(p.diffuse, np.float64)[self.opaque].reshape(-1, 3), START_MARGIN, 1 - START_MARGIN),
-            "background": np.clip(np.asarray(p.background, np.float64) / 255, START_MARGIN, 1 - START_MARGIN),
+            "background": background,
             "lights": np.ones((max(s.n_lights - 1, 0), 3)),
             "ke": np.clip(float(p.ke), START_MARGIN, 0.9),
             "kt": np.clip(np.asarray(p.kt, np.float64)[self.glass], START_MARGIN, 1 - START_MARGIN),
             "dilate": 0.0,
             "occlusion": OCCLUSION_START,
+            "fresnel": background if len(self.glass) else np.zeros(0),
             "gain": np.ones(3),
             "field": np.zeros(FIELD_TERMS),
             **CAMERA_START,
@@ -174,7 +192,7 @@ class Photo:
             return f"light {n // 3 + 1} ({channel[n % 3]})"
         if name == "kt":
             return f"kt of sphere {int(self.glass[n])}"
-        if name in ("gain", "background"):
+        if name in ("gain", "background", "fresnel"):
             return f"{name} ({channel[n]})"
         return f"{name}[{n}]"
 
@@ -190,15 +208,19 @@ class Photo:
         """`params` with the scene's appearance parameters applied (differentiable)."""
         v = self.values(y)
         dtype = params.diffuse.dtype
+        diffuse = params.diffuse.at[self.opaque].set(v["albedo"].astype(dtype)) if len(self.opaque) else params.diffuse
         new = {
-            "diffuse": params.diffuse.at[self.opaque].set(v["albedo"].astype(dtype))
-            if len(self.opaque) else params.diffuse,
-            "background": 255 * v["background"].astype(dtype),
+            "diffuse": decode(diffuse),
+            "light_colors": 255 * decode(params.light_colors / 255),
+            "textures": tuple(255 * decode(t / 255) for t in params.textures),
+            "background": 255 * decode(v["background"].astype(dtype)),
             "ke": v["ke"].astype(dtype),
             "radii": params.radii.at[self.rounded].add((v["dilate"] * self.footprint[self.rounded]).astype(dtype)),
         }
         if "lights" in v:
-            new["light_colors"] = params.light_colors.at[1:].set(params.light_colors[1:] * v["lights"].astype(dtype))
+            new["light_colors"] = new["light_colors"].at[1:].multiply(v["lights"].astype(dtype))
+        if "fresnel" in v:
+            new["fresnel"] = 255 * decode(v["fresnel"].astype(dtype))
         if "kt" in v:
             new["kt"] = params.kt.at[self.glass].set(v["kt"].astype(dtype))
         # glass hides the sky as it shadows the lights: all but kt² of it
@@ -213,8 +235,7 @@ class Photo:
         u = 2 * xy[..., 0] / self.structure.width - 1
         w = 2 * xy[..., 1] / self.structure.height - 1
         field = jnp.exp(field_basis(u, w) @ v["field"].astype(colours.dtype))
-        decoded = jnp.clip(colours / 255, 0, 1) ** DISPLAY_GAMMA
-        return decoded * field[..., None]
+        return jnp.clip(colours / 255, 0, 1) * field[..., None]
 
     def display(self, light, y: dict):
         """Linear light back to display values 0..255: the tone curve x^(γ/2.2), times the

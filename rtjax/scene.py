@@ -112,6 +112,11 @@ class Params(eqx.Module):
     #: sky occlusion's weight per sphere (`rtjax.occlusion`), not part of the deck language;
     #: None: the assignment's ambient term, no occlusion code
     occlusion: Float[Array, " n"] | None = None
+    #: the colour (0..255) glass reflects where a ray meets it from outside, weighted by
+    #: Fresnel's reflectance (`shading.fresnel_reflectance`; what passes is weighted by the
+    #: rest), not part of the deck language; None: glass reflects only by total internal
+    #: reflection, as the deck says, and no such code is compiled
+    fresnel: Float[Array, " 3"] | None = None
 
     def astype(self, dtype) -> "Params":
         return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), self)

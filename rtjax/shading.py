@@ -9,6 +9,10 @@ from, L the unit light vector, R_L = 2(N·L)N − L and cos γ = R_L·V (Phong):
 
 One formula serves all three: a transparent sphere is an opaque one with d = 0, and a
 mirror one with d = 0 and ks = 0; what follows the hit (T, R) is the tracer's business.
+
+Beyond the assignment, for photographs (`Params.fresnel`): glass met from outside
+reflects a colour E with Fresnel's reflectance F and passes the rest,
+I = F·E + (1 − F)·(its transparent I) (`fresnel_reflectance`).
 """
 
 from __future__ import annotations
@@ -44,3 +48,11 @@ def local_light(
     specular = jnp.where(nl > 0, ks * safe_pow(cos_g, beta), 0)
     ambient = ke if sky is None else ke * sky
     return (spread(ambient + visibility * diffuse) * d + spread(visibility * specular)) * light_color[:, None]
+
+
+def fresnel_reflectance(ior: Float[Array, " p"], cos_i: Float[Array, " p"]) -> Float[Array, " p"]:
+    """Fresnel's reflectance of a surface of index `ior` in air at incidence cos θ,
+    Schlick's approximation F0 + (1 − F0)(1 − cos θ)^5 with F0 = ((n − 1)/(n + 1))²: what
+    a glass ball reflects, nearly all of it at its rim, where photographs show it."""
+    f0 = ((ior - 1) / (ior + 1)) ** 2
+    return f0 + (1 - f0) * (1 - jnp.clip(cos_i, 0, 1)) ** 5

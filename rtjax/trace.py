@@ -29,7 +29,7 @@ from . import edges, occlusion, spheres
 from .compact import pack
 from .numerics import dot, lookup, normalize, safe_sqrt, spread, take_rows
 from .scene import GLASS, MIRROR, OPAQUE, TEXTURE, Params, Structure
-from .shading import local_light, phong_angles
+from .shading import fresnel_reflectance, local_light, phong_angles
 from .textures import textured_diffuse
 
 PLAIN, BOX, SIDED = "plain", "box", "sided"
@@ -241,7 +241,12 @@ def segment(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: 
     idx = jnp.maximum(hit.index, 0)
     alive = hit.found & jnp.asarray(s.mask(MIRROR, GLASS))[idx] & (rays.level < depth)
     glass = jnp.asarray(s.mask(GLASS))[idx]
-    weight = jnp.where(alive, rays.weight * jnp.where(glass, lookup(p.kt, idx), 1), 0)
+    passes = jnp.where(glass, lookup(p.kt, idx), 1)
+    if p.fresnel is not None and s.has(GLASS):  # glass seen from outside reflects p.fresnel, passes the rest
+        reflects = jnp.where(glass & entering & hit.found & active, fresnel_reflectance(lookup(p.ior, idx), dot(n, -d)), 0)
+        colour = colour + spread(rays.weight * reflects) * p.fresnel[:, None]
+        passes = passes * (1 - reflects)
+    weight = jnp.where(alive, rays.weight * passes, 0)
 
     def turn(d, n):
         return normalize(next_direction(s, p, idx, d, n, entering))

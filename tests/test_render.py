@@ -92,6 +92,32 @@ def test_glass_weighs_kt_per_interface():
     np.testing.assert_allclose(centre(rtjax.render(s, depth=1)), [0, 0, 0])  # second interface past the depth
 
 
+def test_glass_reflects_its_fresnel_colour_from_outside():
+    """`Params.fresnel` E: glass met from outside reflects F·E and passes (1 − F) of its
+    transparent colour, F Schlick's reflectance; leaving the ball reflects nothing. n = 1.5
+    at the centre pixel (normal incidence, no bending): F = ((n − 1)/(n + 1))² = 0.04. n = 1
+    on every pixel (no bending): F = (1 − cos θ)^5, cos θ from NumPy's own ray–sphere
+    intersection, so the rim tends to E."""
+    back, e = np.array([100.0, 200.0, 40.0]), np.array([60.0, 90.0, 250.0])
+    dense = scene_from_text("sphe 0 0 0 10\ntrpa 0.5 1.5 0 1\nback 100 200 40\n" + CAMERA).astype(jnp.float64)
+    np.testing.assert_allclose(centre(rtjax.render(dense.replace(fresnel=e), depth=2)), 0.04 * e + 0.96 * 0.25 * back,
+                               rtol=1e-12)
+    s = scene_from_text("sphe 0 0 0 25\ntrpa 0.5 1 0 1\nback 100 200 40\n" + CAMERA).astype(jnp.float64)
+    image = np.asarray(rtjax.render(s.replace(fresnel=e), depth=2))
+    p = s.params
+    _, d = rtjax.camera.primary_rays(p.eye, p.refp, p.vang, 11, 11, jnp.array([0.5, 0.5]))
+    d = np.asarray(d, np.float64).T.reshape(11, 11, 3)
+    eye = np.asarray(p.eye, np.float64)
+    b = d @ eye  # the sphere is at the origin, radius 25
+    disc = b * b - (eye @ eye - 625)
+    hit = disc > 0
+    normal = (eye + (-b - np.sqrt(np.where(hit, disc, 0)))[..., None] * d) / 25
+    f = (1 - np.sum(-d * normal, -1)) ** 5
+    expect = np.where(hit[..., None], f[..., None] * e + (1 - f[..., None]) * 0.25 * back, back)
+    assert hit.sum() >= 40 and f[hit].max() > 0.05  # rim pixels where F matters
+    np.testing.assert_allclose(image, expect, rtol=1e-9)
+
+
 def test_no_lights_means_black_spheres():
     deck = "sphe 0 0 0 10\nopaq 1 1 1 1 1\nelig 1\nback 9 9 9\n" + CAMERA
     img = np.asarray(rtjax.render(scene_from_text(deck)))
