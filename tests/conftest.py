@@ -11,6 +11,8 @@ import sys
 import threading
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 
 import rtjax
 
@@ -229,3 +231,47 @@ def truth(request) -> rtjax.Scene:
 def sample_deck_text() -> str:
     with open(os.path.join(SCENES, "ex2s3.dat")) as f:
         return f.read()
+
+
+def first_hits(s: rtjax.Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each pixel's ray through its centre (the renderer's camera, NumPy from there):
+    the sphere it meets first (H, W; −1 for none), the hit point (H, W, 3) and that
+    sphere's outward normal there, in float64."""
+    p = s.params
+    _, d = rtjax.camera.primary_rays(p.eye, p.refp, p.vang, s.structure.width, s.structure.height, jnp.array([0.5, 0.5]))
+    eye, dirs = np.asarray(p.eye, np.float64), np.asarray(d, np.float64).T  # (P, 3)
+    centers, radii = np.asarray(p.centers, np.float64), np.asarray(p.radii, np.float64)
+    oc = eye - centers  # (N, 3)
+    b = dirs @ oc.T  # (P, N)
+    disc = b * b - np.sum(oc * oc, 1) + radii**2
+    t = -b - np.sqrt(np.maximum(disc, 0))
+    t = np.where((disc > 0) & (t > 0), t, np.inf)
+    index = np.where(np.isfinite(t.min(1)), t.argmin(1), -1)
+    point = eye + t.min(1)[:, None] * dirs
+    normal = (point - centers[np.maximum(index, 0)]) / radii[np.maximum(index, 0)][:, None]
+    shape = (s.structure.height, s.structure.width)
+    return index.reshape(shape), point.reshape(*shape, 3), normal.reshape(*shape, 3)
+
+
+@pytest.mark.parametrize("cos_t, sin2_s", [(1.0, 0.1), (0.6, 0.3), (0.3, 0.3), (0.0, 0.5), (-0.4, 0.6), (-0.9, 0.5), (0.2, 0.999)])
+def test_form_factor_is_the_covered_share_of_the_hemisphere(cos_t, sin2_s):
+    """A sphere at angle θ from the normal subtending σ: the sampled share of
+    cosine-weighted directions that meet it, in and past the horizon-clipped range."""
+    d = 10.0
+    centre = d * np.array([np.sqrt(1 - cos_t**2), 0, cos_t])
+    sampled = monte_carlo_hidden(np.zeros(3), np.array([0, 0, 1.0]), [centre], [d * np.sqrt(sin2_s)], [1.0], count=400_000)
+    got = float(form_factor(jnp.asarray(cos_t, jnp.float64), jnp.asarray(sin2_s, jnp.float64)))
+    assert abs(got - sampled) < 3e-3, (got, sampled)
+
+
+def test_form_factor_limits():
+    """Wholly above the horizon: cos θ·sin²σ. A sphere as large as a plane (σ → 90°):
+    (1 + cos θ)/2, the share of the hemisphere below a plane. Below the horizon: 0."""
+    c = np.linspace(-1, 1, 41)
+    s2 = 0.2
+    above = c * c > s2
+    got = np.asarray(form_factor(jnp.asarray(c), jnp.asarray(s2, jnp.float64)))
+    np.testing.assert_allclose(got[above & (c > 0)], c[above & (c > 0)] * s2, rtol=1e-12)
+    assert np.all(got[above & (c < 0)] == 0)
+    plane = np.asarray(form_factor(jnp.asarray(c[1:-1]), jnp.asarray(1 - 1e-9, jnp.float64)))
+    np.testing.assert_allclose(plane, (1 + c[1:-1]) / 2, atol=1e-4)

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import quick_xla
+from conftest import first_hits, quick_xla
 
 import rtjax
 from rtjax.occlusion import form_factor
@@ -52,26 +52,6 @@ def monte_carlo_hidden(point, normal, centers, radii, weights, count=200_000, se
         disc = b * b - (oc @ oc - rad * rad)
         total += w * np.mean((disc > 0) & (b - np.sqrt(np.maximum(disc, 0)) > 0))  # the near root in front
     return total
-
-
-def first_hits(s: rtjax.Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each pixel's ray through its centre (the renderer's camera, NumPy from there):
-    the sphere it meets first (H, W; −1 for none), the hit point (H, W, 3) and that
-    sphere's outward normal there, in float64."""
-    p = s.params
-    _, d = rtjax.camera.primary_rays(p.eye, p.refp, p.vang, s.structure.width, s.structure.height, jnp.array([0.5, 0.5]))
-    eye, dirs = np.asarray(p.eye, np.float64), np.asarray(d, np.float64).T  # (P, 3)
-    centers, radii = np.asarray(p.centers, np.float64), np.asarray(p.radii, np.float64)
-    oc = eye - centers  # (N, 3)
-    b = dirs @ oc.T  # (P, N)
-    disc = b * b - np.sum(oc * oc, 1) + radii**2
-    t = -b - np.sqrt(np.maximum(disc, 0))
-    t = np.where((disc > 0) & (t > 0), t, np.inf)
-    index = np.where(np.isfinite(t.min(1)), t.argmin(1), -1)
-    point = eye + t.min(1)[:, None] * dirs
-    normal = (point - centers[np.maximum(index, 0)]) / radii[np.maximum(index, 0)][:, None]
-    shape = (s.structure.height, s.structure.width)
-    return index.reshape(shape), point.reshape(*shape, 3), normal.reshape(*shape, 3)
 
 
 @pytest.mark.parametrize("cos_t, sin2_s", [(1.0, 0.1), (0.6, 0.3), (0.3, 0.3), (0.0, 0.5), (-0.4, 0.6), (-0.9, 0.5), (0.2, 0.999)])

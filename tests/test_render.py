@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import SCENES, scene_from_text
+from conftest import SCENES, first_hits, scene_from_text
 
 import rtjax
 from rtjax import reference
@@ -104,15 +104,11 @@ def test_glass_reflects_its_fresnel_colour_from_outside():
                                rtol=1e-12)
     s = scene_from_text("sphe 0 0 0 25\ntrpa 0.5 1 0 1\nback 100 200 40\n" + CAMERA).astype(jnp.float64)
     image = np.asarray(rtjax.render(s.replace(fresnel=e), depth=2))
-    p = s.params
-    _, d = rtjax.camera.primary_rays(p.eye, p.refp, p.vang, 11, 11, jnp.array([0.5, 0.5]))
-    d = np.asarray(d, np.float64).T.reshape(11, 11, 3)
-    eye = np.asarray(p.eye, np.float64)
-    b = d @ eye  # the sphere is at the origin, radius 25
-    disc = b * b - (eye @ eye - 625)
-    hit = disc > 0
-    normal = (eye + (-b - np.sqrt(np.where(hit, disc, 0)))[..., None] * d) / 25
-    f = (1 - np.sum(-d * normal, -1)) ** 5
+    index, point, normal = first_hits(s)
+    hit = index == 0
+    d = np.where(hit[..., None], point - np.asarray(s.params.eye, np.float64), 1)  # the ray to each hit
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    f = np.where(hit, 1 - np.sum(-d * np.where(hit[..., None], normal, 0), -1), 0) ** 5
     expect = np.where(hit[..., None], f[..., None] * e + (1 - f[..., None]) * 0.25 * back, back)
     assert hit.sum() >= 40 and f[hit].max() > 0.05  # rim pixels where F matters
     np.testing.assert_allclose(image, expect, rtol=1e-9)
