@@ -1,17 +1,20 @@
 """Make the photo-like evaluation set in scenes/photos/: images of deck scenes rendered by
-two independent, physically based renderers (POV-Ray 3.7 and Blender Cycles), passed
-through a seeded camera model, with a truth deck and a perturbed start deck per photo.
+three independent, physically based renderers (POV-Ray 3.7, Blender Cycles, Mitsuba 3),
+passed through a seeded camera model, with a truth deck and a perturbed start deck per photo.
+Mitsuba's photos are all held out: the fitting was tuned on POV-Ray's and Cycles' only.
 
 A tool, run by hand; nothing in rtjax, fitting or the tests imports it.
 
-Install the renderers (Debian 12 packages, POV-Ray 3.7.0 and Blender 3.4.1):
+Install the renderers (Debian 12 packages, POV-Ray 3.7.0 and Blender 3.4.1; Mitsuba
+and SciPy from PyPI into the virtual environment):
 
     apt-get install -y povray blender
+    pip install mitsuba scipy
 
 Run from the worktree's virtual environment (which has rtjax, OpenImageIO, Pillow, SciPy):
 
     python scripts/make_photos.py                   # render what is not cached, develop, write all
-    python scripts/make_photos.py --only glass      # one deck (or one photo name) only
+    python scripts/make_photos.py --only glass      # one deck, one renderer or one photo name only
     python scripts/make_photos.py --force           # render again even if cached
     python scripts/make_photos.py --check-geometry  # camera check against rtjax (silhouettes)
 
@@ -42,9 +45,19 @@ What the converters do:
 * Sky: `back` is what camera rays, reflections and refractions see; diffuse light comes
   from a uniform sky of radiance ke (sum of L + back), linear (POV-Ray: radiosity with a
   `no_image no_reflection` emitting dome; Cycles: the world shader split by Light Path).
+* Mitsuba 3 (`scalar_rgb`, its `path` integrator, Gaussian pixel filter) has models of
+  its own: `opaq` is `roughplastic` (Beckmann alpha sqrt(2 / (4 beta + 2)), specular
+  scale min(1, 5 ks)), `mirr` polished aluminium (`conductor`, measured Al), `trpa` a
+  `dielectric` of index n transmitting kt per interface (glass casts a real shadow: no
+  light passes it to a shadow ray), each `plig` a `directional` light (hard shadows) of
+  irradiance pi (1 - ke) L, and `back` a `constant` sky that camera rays see and that
+  lights the scene (there is no separate ambient term). Its camera has square pixels
+  only, so its photos' truth decks are decks/NAME-mitsuba.dat: NAME.dat with va set so
+  that tan(va/2) = tan(ha/2) H / W exactly (H unchanged, va moved by at most 0.05 deg).
 * Camera model (after rendering, per photo, seeded): exposure, white-balance gains, lens
   blur (Gaussian), vignetting, sensor noise (shot + read) in linear light; then a tone
-  curve (sRGB, a plain gamma, or Blender's Filmic view transform); then 8-bit JPEG
+  curve (sRGB, a plain gamma, Blender's Filmic view transform, or for Mitsuba's photos
+  the ACES filmic fit of Narkowicz 2015 before sRGB); then 8-bit JPEG
   (quality 50-95, 4:2:0 or 4:4:4 chroma) or PNG.
 """
 
@@ -70,10 +83,14 @@ SCRIPT = os.path.abspath(__file__)
 
 SEED = 20240611
 DECK_NAMES = ("floor_spheres", "mirrors", "glass", "two_lights", "top_down", "ex2s3", "mixed")
-RENDERERS = ("povray", "cycles")
+RENDERERS = ("povray", "cycles")  # the renderers of the tuning set and its hold-out
+#: A third renderer, every photo of it held out.
+THIRD = "mitsuba"
 #: (deck, renderer) pairs that get a second camera model (a second photo of one render).
 SECOND_MODEL = (("floor_spheres", "cycles"), ("mirrors", "povray"), ("glass", "cycles"), ("ex2s3", "povray"))
 TONES = ("srgb", "gamma", "filmic")
+THIRD_TONES = ("aces", "srgb", "gamma")
+MITSUBA_SPP = 192
 EX2S3_WIDTH = 320
 SUN_ANGLE_DEG = 2.0
 FLOOR_FACTOR = 10.0  # a sphere whose radius exceeds this many times the median is a floor
@@ -104,6 +121,30 @@ def write_ex2s3_copy() -> None:
     if not os.path.exists(path) or open(path, encoding="utf-8").read() != text:
         with open(path, "w", encoding="utf-8") as f:
             f.write(text)
+
+
+def square_pixel_deck(deck: str) -> str:
+    """Write decks/DECK-mitsuba.dat: decks/DECK.dat with `vang`'s va set so that pixels are
+    square (tan(va/2) = tan(ha/2) H / W for the deck's own H), which Mitsuba's camera needs.
+    Returns the new deck's name."""
+    path = os.path.join(DECKS, deck + ".dat")
+    scene = load_scene(path)
+    width, height = scene.structure.width, scene.structure.height
+    ha = float(scene.params.vang[0])
+    va = math.degrees(2 * math.atan(math.tan(math.radians(ha) / 2) * height / width))
+    lines = open(path, encoding="utf-8").read().splitlines()
+    out = [f"# {deck}-{THIRD}.dat: {deck}.dat with square pixels for Mitsuba's camera (scripts/make_photos.py)"]
+    out += [f"vang {ha:.10g} {va:.10g}" if line.split()[:1] == ["vang"] else line for line in lines]
+    name = f"{deck}-{THIRD}"
+    text = "\n".join(out) + "\n"
+    target = os.path.join(DECKS, name + ".dat")
+    if not os.path.exists(target) or open(target, encoding="utf-8").read() != text:
+        with open(target, "w", encoding="utf-8") as f:
+            f.write(text)
+    check = load_scene(target).structure
+    if (check.width, check.height) != (width, height):
+        raise SystemExit(f"make_photos: {target}: square pixels changed the image size to {check.width}x{check.height}")
+    return name
 
 
 def load_scene(path: str):
@@ -427,6 +468,73 @@ def mask_colour(index: int) -> list[float]:
     return [1.0 if k == index % 3 else 0.0 for k in range(3)]
 
 
+# -- Mitsuba 3 ---------------------------------------------------------------------------------
+def mitsuba_roughness(beta: float) -> float:
+    """Beckmann alpha for a Phong exponent (alpha^2 = 2 / (4 beta + 2), as for Cycles)."""
+    return math.sqrt(2 / (4 * beta + 2))
+
+
+def mitsuba_settings(mode: str) -> dict:
+    if mode == "photo":
+        return {"variant": "scalar_rgb", "integrator": "path, max_depth 24, rr_depth 8", "samples": MITSUBA_SPP, "pixel_filter": "gaussian (stddev 0.5 px)",
+                "lights": "directional (no disc)", "sky": "constant = back, lights the scene"}
+    return {"variant": "scalar_rgb", "integrator": "path, max_depth 1", "samples": 256, "pixel_filter": "box 1 px"}
+
+
+def mitsuba_bsdf(s: dict, desc: dict, index: int) -> dict:
+    def rgb(value):
+        return {"type": "rgb", "value": [float(c) for c in value]}
+
+    if desc["mode"] == "mask":
+        return {"type": "diffuse", "reflectance": rgb([0, 0, 0])}
+    if s["kind"] == "mirr":
+        return {"type": "conductor", "material": "Al"}
+    if s["kind"] == "trpa":
+        return {"type": "dielectric", "int_ior": s["n"], "ext_ior": 1.0, "specular_transmittance": rgb([s["kt"]] * 3)}
+    return {"type": "roughplastic", "distribution": "beckmann", "alpha": mitsuba_roughness(s["beta"]), "int_ior": 1.5,
+            "diffuse_reflectance": rgb(s["d"]), "specular_reflectance": rgb([min(1.0, 5 * s["ks"])] * 3)}
+
+
+def render_mitsuba(desc: dict, exr: str, seed: int) -> float:
+    """Render with Mitsuba 3 (`scalar_rgb`, in this process) into a linear OpenEXR file; returns seconds."""
+    import mitsuba as mi
+    import numpy as np
+
+    mi.set_variant("scalar_rgb")
+    photo = desc["mode"] == "photo"
+    e, w, v = (np.asarray(desc[k], float) for k in ("eye", "w", "v"))
+    if abs(desc["tan_v"] / desc["tan_h"] * desc["width"] / desc["height"] - 1) > 1e-7:
+        raise SystemExit("make_photos: Mitsuba's camera has square pixels only; render a square-pixel deck (square_pixel_deck)")
+    to_world = mi.ScalarTransform4f().look_at(origin=e.tolist(), target=(e + w).tolist(), up=v.tolist())
+    scene = {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 24, "rr_depth": 8} if photo else {"type": "path", "max_depth": 1},
+        "sensor": {
+            "type": "perspective", "fov_axis": "x", "fov": math.degrees(2 * math.atan(desc["tan_h"])), "near_clip": 0.01, "far_clip": 1e6,
+            "to_world": to_world,
+            "sampler": {"type": "independent", "sample_count": MITSUBA_SPP if photo else 256, "seed": seed},
+            "film": {"type": "hdrfilm", "width": desc["width"], "height": desc["height"], "pixel_format": "rgb", "component_format": "float32",
+                     "rfilter": {"type": "gaussian"} if photo else {"type": "box"}},
+        },
+    }
+    if photo:
+        scene["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": desc["back"]}}
+        for k, light in enumerate(desc["lights"]):
+            if max(light["colour"]) <= 0:
+                continue
+            scene[f"sun{k}"] = {"type": "directional", "direction": [-c for c in light["dir"]],
+                                "irradiance": {"type": "rgb", "value": [math.pi * (1 - desc["ke"]) * c for c in light["colour"]]}}
+    for i, s in enumerate(desc["spheres"]):
+        shape = {"type": "sphere", "center": s["center"], "radius": s["radius"], "bsdf": mitsuba_bsdf(s, desc, i)}
+        if not photo:
+            shape["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": mask_colour(i)}}
+        scene[f"sphere{i}"] = shape
+    t = time.time()
+    image = np.asarray(mi.render(mi.load_dict(scene), seed=seed), np.float64)[..., :3]
+    write_exr(exr, image)
+    return time.time() - t
+
+
 # -- running renderers ---------------------------------------------------------------------------
 def run(cmd: list[str], log: str) -> None:
     with open(log, "w") as f:
@@ -460,10 +568,22 @@ def render(desc: dict, renderer: str, exr: str, seed: int) -> float:
     os.makedirs(os.path.dirname(exr), exist_ok=True)
     if renderer == "povray":
         return render_povray(desc, exr)
+    if renderer == THIRD:
+        return render_mitsuba(desc, exr, seed)
     return render_cycles(desc, exr, seed)
 
 
+def render_settings(renderer: str, mode: str) -> dict:
+    return {"povray": pov_settings, "cycles": cycles_settings, THIRD: mitsuba_settings}[renderer](mode)
+
+
 def renderer_version(renderer: str) -> str:
+    if renderer == THIRD:
+        try:
+            import mitsuba
+        except ImportError:
+            return "not installed"
+        return f"Mitsuba {mitsuba.__version__} (scalar_rgb)"
     cmd = ["povray", "--version"] if renderer == "povray" else ["blender", "-b", "--factory-startup", "--version"]
     try:
         res = subprocess.run(cmd, capture_output=True, text=True)
@@ -481,8 +601,8 @@ def photo_seed(name: str) -> int:
     return (SEED * 7919 + zlib.crc32(name.encode())) % 2**31
 
 
-def camera_model(name: str, index: int) -> dict:
-    """The seeded camera/post settings of photo `name` (index cycles the tone curve)."""
+def camera_model(name: str, index: int, tones: tuple[str, ...] = TONES) -> dict:
+    """The seeded camera/post settings of photo `name` (index cycles the tone curves `tones`)."""
     import numpy as np
 
     rng = np.random.default_rng(photo_seed(name))
@@ -496,7 +616,7 @@ def camera_model(name: str, index: int) -> dict:
     noise_seed = int(rng.integers(2**31))
     fmt = ("jpeg420", "jpeg444", "png")[rng.choice(3, p=[0.5, 0.3, 0.2])]
     quality = int(rng.integers(50, 96))
-    tone = TONES[index % len(TONES)]
+    tone = tones[index % len(tones)]
     model = {
         "exposure_ev": round(ev, 3),
         "white_balance": [round(g, 3) for g in wb],
@@ -525,7 +645,8 @@ CAMERA_MODEL_DOC = {
     "blur_sigma_px": "Gaussian lens blur, sigma in pixels (0: none), edges extended",
     "vignetting": "gain 1 - vignetting * (r / r_corner)**2, r from the image centre",
     "noise_shot, noise_read": "Gaussian noise of variance noise_shot * I + noise_read**2 in linear light (I the exposed value, 1 = white)",
-    "tone": "srgb: the sRGB curve; gamma: I**(1/gamma); filmic: Blender 3.4's Filmic view transform with filmic_look (OCIO, sRGB display)",
+    "tone": "srgb: the sRGB curve; gamma: I**(1/gamma); filmic: Blender 3.4's Filmic view transform with filmic_look (OCIO, sRGB display); "
+            "aces: x (2.51 x + 0.03) / (x (2.43 x + 0.59) + 0.14) (Narkowicz 2015), then the sRGB curve",
     "format": "png, or jpeg with jpeg_quality and jpeg_chroma (Pillow; 4:2:0 is its default subsampling)",
 }
 
@@ -549,11 +670,14 @@ def develop(linear, model: dict):
 
 
 def tone(x, model: dict):
-    """sRGB or plain-gamma tone curve to 0..1 (Filmic is done by Blender, see `filmic_batch`)."""
+    """sRGB, plain-gamma or ACES-fit tone curve to 0..1 (Filmic is done by Blender, see `filmic_batch`)."""
     import numpy as np
 
+    if model["tone"] == "aces":
+        x = np.maximum(x, 0)
+        x = x * (2.51 * x + 0.03) / (x * (2.43 * x + 0.59) + 0.14)
     x = np.clip(x, 0, 1)
-    if model["tone"] == "srgb":
+    if model["tone"] in ("srgb", "aces"):
         return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
     return x ** (1 / model["gamma"])
 
@@ -589,15 +713,21 @@ def photo_list() -> list[dict]:
                 photos.append({"name": f"{deck}-{renderer}-{k}", "deck": deck, "renderer": renderer, "model_index": k})
     for i, p in enumerate(photos):
         p["camera"] = camera_model(p["name"], i)
+    third = [{"name": f"{deck}-{THIRD}-1", "deck": deck, "renderer": THIRD, "model_index": 1} for deck in DECK_NAMES]
+    for i, p in enumerate(third):
+        p["camera"] = camera_model(p["name"], i, THIRD_TONES)
+    photos += third
+    for p in photos:
         p["file"] = p["name"] + (".png" if p["camera"]["format"] == "png" else ".jpg")
     return photos
 
 
 def holdout(photos: list[dict]) -> set[str]:
-    """A third of the photos, one per deck for a seeded order of decks, renderers alternating."""
+    """A third of POV-Ray's and Cycles' photos, one per deck for a seeded order of decks,
+    renderers alternating; and every photo of the third renderer."""
     import numpy as np
 
-    n = round(len(photos) / 3)
+    n = round(sum(p["renderer"] in RENDERERS for p in photos) / 3)
     order = list(np.random.default_rng(SEED + 1).permutation(len(DECK_NAMES)))
     chosen: list[str] = []
     k = 0
@@ -609,7 +739,7 @@ def holdout(photos: list[dict]) -> set[str]:
             name = f"{deck}-{RENDERERS[(k + 1) % 2]}-1"
         chosen.append(name)
         k += 1
-    return set(chosen)
+    return set(chosen) | {p["name"] for p in photos if p["renderer"] == THIRD}
 
 
 def start_deck(name: str, deck: str, scene, desc: dict) -> tuple[list[int], list[list[float]]]:
@@ -666,17 +796,20 @@ def make(only: str | None, force: bool) -> None:
     write_ex2s3_copy()
     photos = photo_list()
     held = holdout(photos)
-    scenes = {d: load_scene(os.path.join(DECKS, d + ".dat")) for d in DECK_NAMES}
-    descs = {d: describe(scenes[d]) for d in DECK_NAMES}
-    selected = [p for p in photos if only in (None, p["deck"], p["name"])]
+    for p in photos:
+        p["truth_deck"] = square_pixel_deck(p["deck"]) if p["renderer"] == THIRD else p["deck"]
+    scenes = {p["truth_deck"]: load_scene(os.path.join(DECKS, p["truth_deck"] + ".dat")) for p in photos}
+    descs = {name: describe(scene) for name, scene in scenes.items()}
+    selected = [p for p in photos if only in (None, p["deck"], p["name"], p["renderer"])]
     if only and not selected:
-        raise SystemExit(f"make_photos: --only {only}: no deck or photo of that name (decks: {', '.join(DECK_NAMES)})")
+        raise SystemExit(f"make_photos: --only {only}: no deck, renderer or photo of that name (decks: {', '.join(DECK_NAMES)})")
+    require({p["renderer"] for p in selected})
 
     times = {}
-    for deck, renderer in sorted({(p["deck"], p["renderer"]) for p in selected}, key=lambda t: (DECK_NAMES.index(t[0]), t[1])):
+    for deck, renderer, truth in sorted({(p["deck"], p["renderer"], p["truth_deck"]) for p in selected}, key=lambda t: (DECK_NAMES.index(t[0]), t[1])):
         exr = os.path.join(CACHE, "renders", f"{deck}-{renderer}.exr")
         if force or not os.path.exists(exr):
-            times[f"{deck}-{renderer}"] = t = render(descs[deck], renderer, exr, photo_seed(deck))
+            times[f"{deck}-{renderer}"] = t = render(descs[truth], renderer, exr, photo_seed(deck))
             print(f"rendered {deck} with {renderer}: {t:.1f} s", flush=True)
     if times:
         with open(os.path.join(CACHE, "render_times.json"), "a") as f:
@@ -701,33 +834,47 @@ def make(only: str | None, force: bool) -> None:
 
     entries = []
     for p in photos:
-        desc = descs[p["deck"]]
-        free, offsets = start_deck(p["name"], p["deck"], scenes[p["deck"]], desc)
-        mode_settings = pov_settings("photo") if p["renderer"] == "povray" else cycles_settings("photo")
+        desc = descs[p["truth_deck"]]
+        free, offsets = start_deck(p["name"], p["truth_deck"], scenes[p["truth_deck"]], desc)
+        mode_settings = render_settings(p["renderer"], "photo")
         entries.append({
             "name": p["name"], "file": p["file"], "renderer": p["renderer"], "deck": p["deck"],
-            "truth": f"decks/{p['deck']}.dat", "start": f"starts/{p['name']}.dat",
+            "truth": f"decks/{p['truth_deck']}.dat", "start": f"starts/{p['name']}.dat",
             "width": desc["width"], "height": desc["height"], "free": free, "start_offsets": offsets,
-            "camera": p["camera"], "render": mode_settings, "render_seed": photo_seed(p["deck"]) if p["renderer"] == "cycles" else None,
+            "camera": p["camera"], "render": mode_settings, "render_seed": photo_seed(p["deck"]) if p["renderer"] != "povray" else None,
             "seed": photo_seed(p["name"]), "split": "holdout" if p["name"] in held else "tune",
         })
         p["split"] = entries[-1]["split"]
+    manifest_path = os.path.join(OUT, "manifest.json")
+    before = json.load(open(manifest_path)).get("renderers", {}) if os.path.exists(manifest_path) else {}
+    versions = {r: renderer_version(r) for r in (*RENDERERS, THIRD)}
     manifest = {
-        "about": "Photo-like images of deck scenes made by POV-Ray and Blender Cycles, not by rtjax (scripts/make_photos.py). "
+        "about": "Photo-like images of deck scenes made by POV-Ray, Blender Cycles and Mitsuba 3, not by rtjax (scripts/make_photos.py). "
                  "Paths are relative to this file's folder. Sphere indices count from 0 in deck order.",
-        "renderers": {r: renderer_version(r) for r in RENDERERS},
+        # A renderer not installed now keeps the version its photos were made with.
+        "renderers": {r: before.get(r, v) if v == "not installed" else v for r, v in versions.items()},
         "camera_model": CAMERA_MODEL_DOC,
         "start_offsets": f"free spheres' centres moved by {OFFSET_RANGE[0]:g}-{OFFSET_RANGE[1]:g} of their radius, uniform direction; "
                          f"spheres larger than {FLOOR_FACTOR:g} x the median radius (floors) stay",
-        "split_rule": "a third held out: one photo (camera model 1) per deck, decks in a seeded order, renderers alternating",
+        "split_rule": "a third of POV-Ray's and Cycles' photos held out: one photo (camera model 1) per deck, decks in a seeded order, "
+                      f"renderers alternating; every {THIRD} photo held out (a renderer the fitting was never tuned on)",
         "photos": entries,
     }
     text = json.dumps(manifest, indent=1)
     text = re.sub(r"\[\s+([^\[\]{}]*?)\s+\]", lambda m: "[" + re.sub(r",\s+", ", ", m.group(1)) + "]", text)  # short lists on one line
-    with open(os.path.join(OUT, "manifest.json"), "w") as f:
+    with open(manifest_path, "w") as f:
         f.write(text + "\n")
     contact_sheet(photos, os.path.join(CACHE, "contact_sheet.png"))
     print(f"wrote {len(selected)} photos, {len(entries)} manifest entries; contact sheet {os.path.join(CACHE, 'contact_sheet.png')}")
+
+
+def require(renderers: set[str]) -> None:
+    """Stop with the install command when a renderer that is needed is missing."""
+    for renderer, tool in (("povray", "povray"), ("cycles", "blender")):
+        if renderer in renderers and shutil.which(tool) is None:
+            raise SystemExit(f"make_photos: {tool} not found; install it with: apt-get install -y povray blender")
+    if THIRD in renderers and renderer_version(THIRD) == "not installed":
+        raise SystemExit("make_photos: mitsuba not found; install it with: pip install mitsuba")
 
 
 # -- the geometry check ------------------------------------------------------------------------
@@ -739,11 +886,15 @@ CHECKS = {
 }
 
 
-def check_deck(name: str) -> str:
-    """A deck of three white-lit spheres (pure red, green, blue at ambient 1) for the check."""
+def check_deck(name: str, square: bool = False) -> str:
+    """A deck of three white-lit spheres (pure red, green, blue at ambient 1) for the check;
+    `square`: va set for square pixels (Mitsuba's camera)."""
     import numpy as np
+    from rtjax.camera import image_height
 
     eye, refp, (ha, va), width, spheres = CHECKS[name]
+    if square:
+        va = math.degrees(2 * math.atan(math.tan(math.radians(ha) / 2) * image_height(width, ha, va) / width))
     w, u, v = camera_basis(eye, refp)
     dist = np.linalg.norm(np.subtract(refp, eye))
     th, tv = math.tan(math.radians(ha) / 2), math.tan(math.radians(va) / 2)
@@ -751,7 +902,7 @@ def check_deck(name: str) -> str:
     for k, (sx, sy, f, r) in enumerate(spheres):
         c = np.asarray(eye) + f * dist * (w + sx * th * u + sy * tv * v)
         lines += [f"sphe {c[0]:.3f} {c[1]:.3f} {c[2]:.3f} {r}", "opaq " + " ".join("1" if j == k else "0" for j in range(3)) + " 0 1"]
-    lines += ["plig 0 0 1 255 255 255", "back 0 0 0", "elig 1", "eyep %g %g %g" % eye, "refp %g %g %g" % refp, f"vang {ha} {va}", f"size {width}", f"rend {name}.sunimg", "quit"]
+    lines += ["plig 0 0 1 255 255 255", "back 0 0 0", "elig 1", "eyep %g %g %g" % eye, "refp %g %g %g" % refp, f"vang {ha:.10g} {va:.10g}", f"size {width}", f"rend {name}.sunimg", "quit"]
     return "\n".join(lines) + "\n"
 
 
@@ -773,23 +924,25 @@ def silhouette_stats(ref, img) -> list[dict]:
     return out
 
 
-def check_geometry() -> bool:
+def check_geometry(renderers: tuple[str, ...]) -> bool:
     import numpy as np
     import rtjax
 
+    require(set(renderers))
     folder = os.path.join(CACHE, "geometry")
     os.makedirs(folder, exist_ok=True)
     results, ok = {}, True
     for name in CHECKS:
-        text = check_deck(name)
-        with open(os.path.join(folder, name + ".dat"), "w") as f:
-            f.write(text)
-        scene = rtjax.parse_deck(text, name + ".dat").frames[0].scene
-        ref = np.asarray(rtjax.render(scene, spp=8), np.float64) / 255
-        desc = describe(scene, "mask")
-        for renderer in RENDERERS:
+        for renderer in renderers:
+            square = renderer == THIRD
+            text = check_deck(name, square)
+            deck = name + ("-square" if square else "")
+            with open(os.path.join(folder, deck + ".dat"), "w") as f:
+                f.write(text)
+            scene = rtjax.parse_deck(text, deck + ".dat").frames[0].scene
+            ref = np.asarray(rtjax.render(scene, spp=8), np.float64) / 255
             exr = os.path.join(folder, f"{name}-{renderer}.exr")
-            render(desc, renderer, exr, 1)
+            render(describe(scene, "mask"), renderer, exr, 1)
             stats = silhouette_stats(ref, read_exr(exr))
             results[f"{name}/{renderer}"] = stats
             for s in stats:
@@ -809,12 +962,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", help="one deck name or one photo name")
     ap.add_argument("--force", action="store_true", help="render again even where a cached render exists")
     ap.add_argument("--check-geometry", action="store_true", help="compare silhouettes with rtjax and exit")
+    ap.add_argument("--renderers", default=",".join((*RENDERERS, THIRD)), help="with --check-geometry: the renderers to check")
     args = ap.parse_args(argv)
-    for tool in ("povray", "blender"):
-        if shutil.which(tool) is None:
-            raise SystemExit(f"make_photos: {tool} not found; install it with: apt-get install -y povray blender")
     if args.check_geometry:
-        return 0 if check_geometry() else 1
+        return 0 if check_geometry(tuple(args.renderers.split(","))) else 1
     make(args.only, args.force)
     return 0
 
