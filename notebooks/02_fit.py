@@ -332,8 +332,8 @@ show(errors + [255 * (1 - tex_all.texels.seen(0))], ["|texel error| ×4, frame 0
 # %% [markdown]
 # ## 5. A photograph rtjax did not render: `photo=True`
 #
-# `scenes/photos/` holds photos of deck scenes made by other renderers (POV-Ray and
-# Blender's Cycles: soft shadows, sky light, Fresnel glass, plastic highlights) and
+# `scenes/photos/` holds photos of deck scenes made by other renderers (POV-Ray,
+# Blender's Cycles, Mitsuba 3: sun shadows, sky light, Fresnel glass, plastic highlights) and
 # passed through a camera (exposure, white balance, lens blur, vignetting, noise, a
 # tone curve, JPEG), with each photo's truth deck and a start deck whose centres are
 # moved by 5–15 % of their radii. No shading of the model matches theirs, so
@@ -395,5 +395,5 @@ show([photo_target, photo_model, difference(photo_model, photo_target, gain=3)],
 # estimates what shading the model lacks does to a centre (the shift of the optimum
 # when only the edge pixels keep their weight). The verdict takes 3·√(σ² + bias²)
 # against each sphere's goal: it errs on the side of failing, and may call a fit
-# undetermined whose centres are in fact within their goals. docs/FITTING.md has the
-# whole photo set's table (`scripts/eval_photos.py`).
+# undetermined whose centres are in fact within their goals. The README has the
+# whole photo set's table (`scripts/eval_photos.py`), docs/FITTING.md its reading.
