@@ -58,6 +58,13 @@ class FrameObjective:
         """Each frame's start scene, at its target's size."""
         return [o.selection.scene for o in self.objectives]
 
+    def start(self) -> list:
+        """Each frame's `Objective.start`."""
+        return [o.start() for o in self.objectives]
+
+    def at(self, start: list) -> "FrameObjective":
+        return dataclasses.replace(self, objectives=[o.at(s) for o, s in zip(self.objectives, start)])
+
     def residuals(self, y: dict, samples: FrameSamples):
         return jnp.concatenate([o.residuals(y, s) for o, s in zip(self.objectives, samples.frames)])
 

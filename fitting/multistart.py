@@ -107,10 +107,10 @@ class Parallel:
         return jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], extra, axis=0)]), ys)
 
     def init(self, ys, samples):
-        return self._init(ys, samples)
+        return self._init(ys, self.stepper.args(samples))
 
     def step(self, ys, states, samples, active):
-        ys, states, done, codes, losses = self._step(ys, states, samples, jnp.asarray(active))
+        ys, states, done, codes, losses = self._step(ys, states, self.stepper.args(samples), jnp.asarray(active))
         return ys, states, _host(done), _host(codes), _host(losses).astype(np.float64)
 
     def keep(self, better, new, old):
@@ -147,10 +147,10 @@ class Parallel:
         split = NamedSharding(self.mesh, PartitionSpec(AXIS))
         return jax.tree.map(lambda a: jax.lax.with_sharding_constraint(a, split) if eqx.is_array(a) else a, tree)
 
-    def _initial(self, ys, samples):
-        return self._over_starts(self.stepper.initial, (ys,), (samples,))
+    def _initial(self, ys, args):
+        return self._over_starts(self.stepper.initial, (ys,), (args,))
 
-    def _advance(self, ys, states, samples, active):
+    def _advance(self, ys, states, args, active):
         def one(y, state, active, args):
             """One start's step, skipped (`lax.cond`) once it has stopped: in "map" mode a
             stopped start costs nothing (under vmap the cond is a select of both)."""
@@ -173,7 +173,7 @@ class Parallel:
             y2, state2 = eqx.combine(new, box[0])
             return y2, state2, done, code, loss
 
-        return self._over_starts(one, (ys, states, active), (samples,))
+        return self._over_starts(one, (ys, states, active), (args,))
 
 
 def fit_multistart(scene: rtjax.Scene, target, free: str | Sequence[str] = "centers", *, starts: int = 4, seed: int = 0,

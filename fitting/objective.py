@@ -318,6 +318,15 @@ def make_levels(target: np.ndarray, weight: np.ndarray, widths: Sequence[int], e
     return levels
 
 
+class Start(NamedTuple):
+    """What a residual function reads of its fit's start (`Objective.start`): the start
+    scene's parameters, the free values' start, and a photo's footprints (or None)."""
+
+    params: rtjax.Params
+    values: dict
+    footprint: np.ndarray | None
+
+
 @dataclasses.dataclass
 class Objective:
     """The residual function r(y, samples): one for every level (samples are arguments)."""
@@ -327,6 +336,19 @@ class Objective:
     loss: str
     loss_scale: float
     photo: object = None  # a `fitting.photo.Photo`: y["photo"] holds its parameters
+
+    def start(self) -> Start:
+        """The arrays this objective reads of its start. `solvers.Stepper` passes them to
+        its compiled programs as arguments, not constants, so that a fit of the same
+        structure from another start (another photo of the same deck, say) reuses them:
+        in this process and from the compilation cache."""
+        return Start(self.selection.scene.params, self.selection.start,
+                     None if self.photo is None else self.photo.footprint)
+
+    def at(self, start: Start) -> "Objective":
+        """This objective from `start` (traced arrays, inside a compiled program)."""
+        photo = None if self.photo is None else self.photo.at(start.footprint)
+        return dataclasses.replace(self, selection=self.selection.at(start.params, start.values), photo=photo)
 
     def model(self, y: dict, samples: Samples):
         """The model's colours at the samples: the silhouette-aware render, or on an

@@ -44,6 +44,7 @@ limit (`Range.flags`) makes the fit's verdict a failure (`fitting.verdict`).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import jax
@@ -179,6 +180,12 @@ class Photo:
             **CAMERA_START,
         }
         self.start = {k: v for k, v in start.items() if np.size(v) or k in ("ke", "dilate")}
+
+    def at(self, footprint) -> "Photo":
+        """This photo model with other footprints (`Objective.at`'s part)."""
+        out = copy.copy(self)
+        out.footprint = footprint
+        return out
 
     def label(self, name: str, n: int, size: int) -> str:
         """A name for entry n (of `size`) of parameter `name`: which sphere, light or

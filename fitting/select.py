@@ -10,6 +10,7 @@ n ≥ 1 through 1 + exp, …), so no solver step can leave the valid range, and
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from collections.abc import Iterable, Sequence
 
@@ -175,6 +176,13 @@ class Selection:
             value = t.from_free(y[name], x0).astype(old.dtype)
             new[fam.field] = old.at[self.index[name]].set(value) if name in self.index else value
         return dataclasses.replace(p, **new)
+
+    def at(self, params: rtjax.Params, start: dict) -> "Selection":
+        """This selection from other start parameters and free values (the same families,
+        spheres and transforms): `Objective.at`'s part."""
+        out = copy.copy(self)
+        out.scene, out.start = rtjax.Scene(self.scene.structure, params), start
+        return out
 
     def scene_at(self, y: dict) -> rtjax.Scene:
         return rtjax.Scene(self.scene.structure, self.params(y))

@@ -125,12 +125,21 @@ class Stepper:
     - `jac`: 'fwd' (the Jacobian by `with_dense_jacobian`), 'bwd' (reverse mode) or
       'matfree' (no Jacobian: `matrixfree.matrix_free`).
 
-    `initial` and `advance` are traceable; `init` and `step` are their `eqx.filter_jit`
-    forms, compiled once per fit (a level's samples are arguments).
+    `initial` and `advance` are traceable, their `args` a level's samples and the
+    objective's start (`args`); `init` and `step` are their `eqx.filter_jit` forms on a
+    level's samples, compiled once per fit and structure: the samples and the start are
+    arguments, so that another fit of the same structure (another start, another
+    target) reuses the programs.
     """
 
     def __init__(self, objective: Objective, solver: str, rtol: float, atol: float, jac: str):
-        residuals = with_dense_jacobian(objective.residuals) if jac == "fwd" else objective.residuals
+        self.start = objective.start()
+
+        def residual(y, args):
+            samples, start = args
+            return objective.at(start).residuals(y, samples)
+
+        residuals = with_dense_jacobian(residual) if jac == "fwd" else residual
         self.options = {"jac": "bwd"} if jac == "bwd" and solver != "bfgs" else {}
         self.solver = SOLVERS[solver](rtol, atol)
         if jac == "matfree" and solver != "bfgs":
@@ -145,11 +154,23 @@ class Stepper:
             def fn(y, args):
                 return residuals(y, args), None
         self.fn = fn
-        self.init = eqx.filter_jit(self.initial)
-        self.step = eqx.filter_jit(self.advance)
+        self._init = eqx.filter_jit(self.initial)
+        self._step = eqx.filter_jit(self.advance)
+
+    def args(self, samples):
+        """The solver's `args` on the level `samples`: (samples, the objective's start)."""
+        return samples, self.start
+
+    def init(self, y, samples):
+        """The solver's state at y on the level `samples` (compiled)."""
+        return self._init(y, self.args(samples))
+
+    def step(self, y, state, samples):
+        """`advance` on the level `samples` (compiled)."""
+        return self._step(y, state, self.args(samples))
 
     def initial(self, y, args):
-        """The solver's state at y on the level whose samples are `args`."""
+        """The solver's state at y for `args` (`Stepper.args`)."""
         f_struct, aux_struct = jax.eval_shape(lambda: self.fn(y, args))
         return self.solver.init(self.fn, y, args, self.options, f_struct, aux_struct, frozenset())
 
@@ -160,7 +181,8 @@ class Stepper:
         executable (JAX keeps it) instead of compiling on the critical path."""
 
         def work():
-            self.step.lower(y, self.init(y, args), args).compile()
+            a = self.args(args)
+            self._step.lower(y, self._init(y, a), a).compile()
 
         thread = threading.Thread(target=work, name="compile ahead", daemon=True)
         thread.start()
@@ -174,5 +196,5 @@ class Stepper:
         # the state holds the accepted point's function value (no second render):
         # Gauss–Newton family residuals, or BFGS's ½Σr²
         info = state.f_info
-        loss = 0.5 * jnp.mean(info.residual**2) if hasattr(info, "residual") else info.f / args.target.size
+        loss = 0.5 * jnp.mean(info.residual**2) if hasattr(info, "residual") else info.f / args[0].target.size
         return y, state, done, result_code(result), loss

@@ -156,6 +156,13 @@ class Smoothed:
     selection: object
     weight: float
 
+    def start(self):
+        """The smoothed objective's `start`."""
+        return self.objective.start()
+
+    def at(self, start) -> "Smoothed":
+        return dataclasses.replace(self, objective=self.objective.at(start))
+
     def residuals(self, y: dict, samples):
         r = self.objective.residuals(y, samples)
         textures = self.selection.params(y["scene"]).textures
