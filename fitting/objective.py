@@ -340,8 +340,8 @@ class Objective:
     def start(self) -> Start:
         """The arrays this objective reads of its start. `solvers.Stepper` passes them to
         its compiled programs as arguments, not constants, so that a fit of the same
-        structure from another start (another photo of the same deck, say) reuses them:
-        in this process and from the compilation cache."""
+        structure from another start (another photo of the same deck, say) lowers to the
+        same program and finds it in the compilation cache."""
         return Start(self.selection.scene.params, self.selection.start,
                      None if self.photo is None else self.photo.footprint)
 

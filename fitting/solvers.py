@@ -125,11 +125,11 @@ class Stepper:
     - `jac`: 'fwd' (the Jacobian by `with_dense_jacobian`), 'bwd' (reverse mode) or
       'matfree' (no Jacobian: `matrixfree.matrix_free`).
 
-    `initial` and `advance` are traceable, their `args` a level's samples and the
-    objective's start (`args`); `init` and `step` are their `eqx.filter_jit` forms on a
-    level's samples, compiled once per fit and structure: the samples and the start are
-    arguments, so that another fit of the same structure (another start, another
-    target) reuses the programs.
+    `initial` and `advance` are traceable; their `args` are a level's samples and the
+    objective's start (`Stepper.args`). `init` and `step` are their `eqx.filter_jit`
+    forms on a level's samples, compiled once per fit; the samples and the start being
+    arguments, a fit of the same structure from another start or target lowers to the
+    same programs and finds them in the compilation cache.
     """
 
     def __init__(self, objective: Objective, solver: str, rtol: float, atol: float, jac: str):
