@@ -123,6 +123,11 @@ def write_ex2s3_copy() -> None:
             f.write(text)
 
 
+def square_va(ha: float, width: int, height: int) -> float:
+    """The vertical view angle (degrees) that makes a width × height image's pixels square."""
+    return math.degrees(2 * math.atan(math.tan(math.radians(ha) / 2) * height / width))
+
+
 def square_pixel_deck(deck: str) -> str:
     """Write decks/DECK-mitsuba.dat: decks/DECK.dat with `vang`'s va set so that pixels are
     square (tan(va/2) = tan(ha/2) H / W for the deck's own H), which Mitsuba's camera needs.
@@ -131,7 +136,7 @@ def square_pixel_deck(deck: str) -> str:
     scene = load_scene(path)
     width, height = scene.structure.width, scene.structure.height
     ha = float(scene.params.vang[0])
-    va = math.degrees(2 * math.atan(math.tan(math.radians(ha) / 2) * height / width))
+    va = square_va(ha, width, height)
     lines = open(path, encoding="utf-8").read().splitlines()
     out = [f"# {deck}-{THIRD}.dat: {deck}.dat with square pixels for Mitsuba's camera (scripts/make_photos.py)"]
     out += [f"vang {ha:.10g} {va:.10g}" if line.split()[:1] == ["vang"] else line for line in lines]
@@ -275,10 +280,15 @@ def render_povray(desc: dict, exr: str) -> float:
 
 
 # -- Blender / Cycles ----------------------------------------------------------------------------
+def beckmann_alpha(beta: float) -> float:
+    """Beckmann alpha for a Phong exponent: Phong beta ~ Blinn 4 beta ~ Beckmann
+    alpha^2 = 2 / (4 beta + 2)."""
+    return math.sqrt(2 / (4 * beta + 2))
+
+
 def cycles_roughness(beta: float) -> float:
-    """Principled roughness for a Phong exponent: Phong beta ~ Blinn 4 beta ~ Beckmann
-    alpha^2 = 2 / (4 beta + 2), and Blender's alpha is roughness squared."""
-    return (2 / (4 * beta + 2)) ** 0.25
+    """Principled roughness for a Phong exponent: Blender's alpha is roughness squared."""
+    return math.sqrt(beckmann_alpha(beta))
 
 
 def cycles_settings(mode: str) -> dict:
@@ -469,11 +479,6 @@ def mask_colour(index: int) -> list[float]:
 
 
 # -- Mitsuba 3 ---------------------------------------------------------------------------------
-def mitsuba_roughness(beta: float) -> float:
-    """Beckmann alpha for a Phong exponent (alpha^2 = 2 / (4 beta + 2), as for Cycles)."""
-    return math.sqrt(2 / (4 * beta + 2))
-
-
 def mitsuba_settings(mode: str) -> dict:
     if mode == "photo":
         return {"variant": "scalar_rgb", "integrator": "path, max_depth 24, rr_depth 8", "samples": MITSUBA_SPP, "pixel_filter": "gaussian (stddev 0.5 px)",
@@ -481,7 +486,7 @@ def mitsuba_settings(mode: str) -> dict:
     return {"variant": "scalar_rgb", "integrator": "path, max_depth 1", "samples": 256, "pixel_filter": "box 1 px"}
 
 
-def mitsuba_bsdf(s: dict, desc: dict, index: int) -> dict:
+def mitsuba_bsdf(s: dict, desc: dict) -> dict:
     def rgb(value):
         return {"type": "rgb", "value": [float(c) for c in value]}
 
@@ -491,7 +496,7 @@ def mitsuba_bsdf(s: dict, desc: dict, index: int) -> dict:
         return {"type": "conductor", "material": "Al"}
     if s["kind"] == "trpa":
         return {"type": "dielectric", "int_ior": s["n"], "ext_ior": 1.0, "specular_transmittance": rgb([s["kt"]] * 3)}
-    return {"type": "roughplastic", "distribution": "beckmann", "alpha": mitsuba_roughness(s["beta"]), "int_ior": 1.5,
+    return {"type": "roughplastic", "distribution": "beckmann", "alpha": beckmann_alpha(s["beta"]), "int_ior": 1.5,
             "diffuse_reflectance": rgb(s["d"]), "specular_reflectance": rgb([min(1.0, 5 * s["ks"])] * 3)}
 
 
@@ -525,7 +530,7 @@ def render_mitsuba(desc: dict, exr: str, seed: int) -> float:
             scene[f"sun{k}"] = {"type": "directional", "direction": [-c for c in light["dir"]],
                                 "irradiance": {"type": "rgb", "value": [math.pi * (1 - desc["ke"]) * c for c in light["colour"]]}}
     for i, s in enumerate(desc["spheres"]):
-        shape = {"type": "sphere", "center": s["center"], "radius": s["radius"], "bsdf": mitsuba_bsdf(s, desc, i)}
+        shape = {"type": "sphere", "center": s["center"], "radius": s["radius"], "bsdf": mitsuba_bsdf(s, desc)}
         if not photo:
             shape["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": mask_colour(i)}}
         scene[f"sphere{i}"] = shape
@@ -894,7 +899,7 @@ def check_deck(name: str, square: bool = False) -> str:
 
     eye, refp, (ha, va), width, spheres = CHECKS[name]
     if square:
-        va = math.degrees(2 * math.atan(math.tan(math.radians(ha) / 2) * image_height(width, ha, va) / width))
+        va = square_va(ha, width, image_height(width, ha, va))
     w, u, v = camera_basis(eye, refp)
     dist = np.linalg.norm(np.subtract(refp, eye))
     th, tv = math.tan(math.radians(ha) / 2), math.tan(math.radians(va) / 2)
