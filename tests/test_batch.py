@@ -23,12 +23,13 @@ from rtjax.sunraster import read_sunraster
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
-def launch(*args: str, popen=subprocess.Popen) -> subprocess.Popen:
+def launch(*args: str, popen=subprocess.Popen, env: dict[str, str] | None = None) -> subprocess.Popen:
     """tests/multidevice.py in a fresh process with 4 forced CPU devices (started by
-    `popen`, e.g. a conftest.Job's). `rtjax.tune_cpu` appends its own XLA flag to
-    XLA_FLAGS, so the forced device count survives."""
-    flags = (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4").strip()
-    env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
+    `popen`, e.g. a conftest.Job's), in `env` (default: this process's). `rtjax.tune_cpu`
+    appends its own XLA flag to XLA_FLAGS, so the forced device count survives."""
+    env = dict(os.environ if env is None else env)
+    flags = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4").strip()
+    env.update(XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
     return popen([sys.executable, os.path.join(HERE, "multidevice.py"), *args], env=env,
                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 

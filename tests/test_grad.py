@@ -12,7 +12,9 @@ difference quotient is the same at h and h/10, which it is not when an edge (or 
 a terminator, a highlight's cut-off, clamping) sits within h of a pixel centre.
 
 Compile cost: one jitted function per scene structure (`_derivatives`), shared by all
-the families of that scene (the tangent batch has the same shape for each family).
+the families of that scene (the tangent batch has the same shape for each family). The
+checks are tolerances and the compile is most of their cost: the module runs under
+XLA's quick build (`conftest.quick_build`, which says why that checks the same program).
 """
 
 from __future__ import annotations
@@ -28,7 +30,9 @@ import pytest
 
 import rtjax
 
-from conftest import SCENES, quick_xla
+from conftest import SCENES
+
+pytestmark = pytest.mark.usefixtures("quick_build")
 
 FAMILIES = ("centers", "radii", "diffuse", "ks", "beta", "kt", "ior", "light_dirs", "light_colors", "background", "ke", "eye", "refp", "vang")
 
@@ -198,32 +202,22 @@ def test_fresnel_derivatives_match_central_differences():
         moved = s.replace(centers=p.centers.at[0].add(t * dc), ior=p.ior.at[0].add(t * dn), fresnel=p.fresnel + t * de)
         return jnp.sum(w * rtjax.render(moved, depth=depth))
 
-    with quick_xla():
-        _, jvp = jax.jvp(f, (0.0,), (1.0,))
-        grad = jax.grad(f)(0.0)
+    _, jvp = jax.jvp(f, (0.0,), (1.0,))
+    grad = jax.grad(f)(0.0)
     fd, fd10 = (float((f(h) - f(-h)) / (2 * h)) for h in (REL_STEP, REL_STEP / 10))
     assert abs(fd - fd10) <= TOL * abs(fd), "finite differences unstable: an edge or kink within the step"
     assert float(jvp) == pytest.approx(fd, rel=TOL) and float(grad) == pytest.approx(float(jvp), rel=1e-9)
-
-
-@functools.partial(jax.jit, static_argnames="edges")
-def _render(scene, edges):
-    """`rtjax.render` in a jitted function of this file's own, so that `quick_xla`'s build
-    is cached for it alone."""
-    return rtjax.render(scene, edges=edges)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("edges", [0.0, 1.0])
 def test_float32_agrees_with_float64_on_the_sample_deck(edges):
     """The sample deck at 96 × 71: ≥ 99.5 % of pixels within half a level (per channel's
-    worst), plain and silhouette-aware. A check of a tolerance: compiled with
-    `conftest.quick_xla`."""
+    worst), plain and silhouette-aware."""
     with open(os.path.join(SCENES, "ex2s3.dat")) as f:
         deck = rtjax.parse_deck(f.read()).frames[0].scene.resized(96)
-    with quick_xla():
-        single = np.asarray(_render(deck, edges))
-        double = np.asarray(_render(deck.astype(jnp.float64), edges))
+    single = np.asarray(rtjax.render(deck, edges=edges))
+    double = np.asarray(rtjax.render(deck.astype(jnp.float64), edges=edges))
     assert single.dtype == np.float32 and double.dtype == np.float64
     off = np.abs(single - double).max(axis=-1)
     assert np.mean(off < 0.5) >= 0.995, f"{np.mean(off < 0.5):.4f} of pixels within 0.5 levels"

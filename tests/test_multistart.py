@@ -6,7 +6,8 @@ host devices in a subprocess (`tests/multidevice.py fit`), started in the backgr
 soon as the session has collected a test that needs it (conftest.py's background work),
 so it runs while the tests before these do; starts 0-2 are the same in both (start 0 as
 given, then the same seeded draws), so the sharded solves must agree with the vmapped
-ones.
+ones. Both compile with XLA's quick build (`conftest.quick_build`, `quick_env`): the
+checks are tolerances and the compile is most of their cost.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import tempfile
 
 import numpy as np
 import pytest
-from conftest import Job, truth_deck
+from conftest import Job, quick_env, truth_deck
 from test_batch import collect, launch
 
 import fitting
@@ -28,6 +29,7 @@ from rtjax import cli
 TRUTH_WIDTH = 48  # conftest.py's `truth` fixture, at this width
 DECK = truth_deck(TRUTH_WIDTH)
 OFFSET = [[1.5, -1.0, 1.2], [-1.3, 1.0, -1.4]]
+pytestmark = pytest.mark.usefixtures("quick_build")
 OPTIONS = {"seed": 3, "spread": 0.4, "max_steps": 10, "polish": None}
 
 
@@ -41,7 +43,7 @@ def _four_device_fit(job: Job) -> dict:
         spec = os.path.join(folder, "spec.json")
         with open(spec, "w") as f:
             json.dump({"deck": DECK, "offset": OFFSET, "options": dict(OPTIONS, starts=4)}, f)
-        return collect(launch("fit", spec, popen=job.popen))
+        return collect(launch("fit", spec, popen=job.popen, env=quick_env()))
     finally:
         shutil.rmtree(folder, ignore_errors=True)
 

@@ -8,6 +8,10 @@ stores each segment's rays, not its intermediates; these tests pin that the numb
 those of plain autodiff (forward mode does not go through the checkpoint's
 recomputation). The silhouette-aware mode's check is on the sample deck (40 px), whose
 grazing hits on mirror and glass silhouettes the small scene here lacks.
+
+Every check here is an identity to rounding, a tolerance or XLA's memory analysis, and
+compile time is most of their cost: the module runs under XLA's quick build
+(`conftest.quick_build`, which says why that checks the same program).
 """
 
 from __future__ import annotations
@@ -22,7 +26,9 @@ import pytest
 
 import rtjax
 
-from conftest import SCENES, quick_xla
+from conftest import SCENES
+
+pytestmark = pytest.mark.usefixtures("quick_build")
 
 #: A mirror, a glass sphere in front of it, an opaque sphere seen in both, a floor; two
 #: lights. 32 × 24 pixels from a generic camera.
@@ -69,14 +75,13 @@ def assert_dot_products(image, p, structure, least: float):
     """⟨Jᵀc, t⟩ = ⟨c, J t⟩ to rounding (float64) for a random cotangent c and three random
     tangents t over all parameters of `image(p)`, each ⟨c, J t⟩ at least `least` in size."""
     c = jax.random.normal(jax.random.key(7), (structure.height, structure.width, 3), jnp.float64)
-    with quick_xla(clear=True):  # the identity holds in either build; the compile is what costs
-        pullback = jax.jit(lambda p: jax.vjp(image, p)[1](c)[0])(p)
-        push = jax.jit(lambda p, t: jax.jvp(image, (p,), (t,))[1])
-        for key in range(3):
-            t = _random_like(p, key)
-            forward = float(jnp.vdot(c, push(p, t)))
-            assert abs(forward) > least
-            assert _inner(pullback, t) == pytest.approx(forward, rel=1e-9), key
+    pullback = jax.jit(lambda p: jax.vjp(image, p)[1](c)[0])(p)
+    push = jax.jit(lambda p, t: jax.jvp(image, (p,), (t,))[1])
+    for key in range(3):
+        t = _random_like(p, key)
+        forward = float(jnp.vdot(c, push(p, t)))
+        assert abs(forward) > least
+        assert _inner(pullback, t) == pytest.approx(forward, rel=1e-9), key
 
 
 @pytest.mark.slow
@@ -90,9 +95,8 @@ def test_reverse_equals_forward_with_sub_boxes():
     def image(p):
         return rtjax.render(rtjax.Scene(s.structure, p), depth=1, edges=1.0, subdivide=True)
 
-    with quick_xla(clear=True):
-        one_box = np.asarray(rtjax.render(s, depth=1, edges=1.0))
-        changed = np.abs(np.asarray(image(p)) - one_box).max()
+    one_box = np.asarray(rtjax.render(s, depth=1, edges=1.0))
+    changed = np.abs(np.asarray(image(p)) - one_box).max()
     assert changed > 0.5, "no pixel of the scene is subdivided"
     assert_dot_products(image, p, s.structure, least=1e-3)
 

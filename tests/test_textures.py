@@ -7,6 +7,9 @@ rows clamped, divided by 255, is the diffuse colour d of the opaque formula.
 Most tests use `elig 1` and `ks 0`: the opaque formula is then I = d·L exactly
 (the ambient term is ke·d·L and the diffuse one carries 1 − ke = 0), so with a light
 of 255 a pixel shows the texel value itself, whatever the geometry.
+
+The checks are tolerances and the compile is most of their cost: the module runs under
+XLA's quick build (`conftest.quick_build`, which says why that checks the same program).
 """
 
 from __future__ import annotations
@@ -26,6 +29,8 @@ from rtjax import reference
 from rtjax.images import load_image, save_image, to_uint8
 from rtjax.sunraster import write_sunraster
 from rtjax.textures import bilinear, fast_atan2, sphere_uv, texture_colour, textured_diffuse
+
+pytestmark = pytest.mark.usefixtures("quick_build")
 
 # --------------------------------------------------------------------------------------
 # A texture whose texels encode their own coordinates: R = 10 + 30x, G = 20 + 40y, B = 5x².
