@@ -95,15 +95,16 @@ def _with(params: rtjax.Params, **leaves) -> rtjax.Params:
 @functools.partial(jax.jit, static_argnames=("structure", "depth"))
 def _derivatives(params, tangents, cotangents, structure, depth):
     """The image; J·t for a batch of tangents (one-hot: columns of jax.jacfwd); Jᵀ·c for
-    a batch of cotangents (the first is uniform: jax.grad of the image's mean)."""
+    a batch of cotangents (the first is uniform: jax.grad of the image's mean). Both
+    from one linearisation (the JVP rules' tangent equations, and their transpose: what
+    `jax.vjp` does), one program for both modes."""
 
     def f(p):
         return rtjax.render(rtjax.Scene(structure, p), depth=depth)
 
-    image, jvps = jax.vmap(lambda t: jax.jvp(f, (params,), (t,)), out_axes=(None, 0))(tangents)
-    _, pullback = jax.vjp(f, params)
-    grads = jax.vmap(lambda c: pullback(c)[0])(cotangents)
-    return image, jvps, grads
+    image, linear = jax.linearize(f, params)
+    pullback = jax.linear_transpose(linear, params)
+    return image, jax.vmap(linear)(tangents), jax.vmap(lambda c: pullback(c)[0])(cotangents)
 
 
 def _one_hot(params: rtjax.Params, family: str, count: int) -> rtjax.Params:
