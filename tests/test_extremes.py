@@ -43,9 +43,9 @@ def _image_jvp_vjp(params, tangent, cotangent, structure, depth, edges):
     reaches J·t or Jᵀ·c (random directions do not cancel it), so these two products
     check every entry in both modes at the cost of one forward and one reverse pass.
     Both come from one linearisation (the JVP rules' tangent equations, then their
-    transpose: what `jax.vjp` does), so one program holds them (a quarter less compile
-    than `jax.jvp` and `jax.vjp` side by side). Jitted by structure: the tests that
-    share a structure share one compilation."""
+    transpose: what `jax.vjp` does), so one program holds both modes rather than two
+    programs each tracing the render. Jitted by structure: the tests that share a
+    structure share one compilation."""
 
     def f(p):
         return rtjax.render(rtjax.Scene(structure, p), depth=depth, edges=edges)
