@@ -26,10 +26,11 @@ import fitting
 import rtjax
 from rtjax import cli
 
+pytestmark = pytest.mark.usefixtures("quick_build")
+
 TRUTH_WIDTH = 48  # conftest.py's `truth` fixture, at this width
 DECK = truth_deck(TRUTH_WIDTH)
 OFFSET = [[1.5, -1.0, 1.2], [-1.3, 1.0, -1.4]]
-pytestmark = pytest.mark.usefixtures("quick_build")
 OPTIONS = {"seed": 3, "spread": 0.4, "max_steps": 10, "polish": None}
 
 
