@@ -11,7 +11,7 @@ schedule.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import jax
@@ -370,30 +370,98 @@ class Objective:
         level is `whole`: the whole image, each pixel box-filtered at its edges
         (`rtjax.render`'s silhouette-aware mode, 1 pixel wide), through `camera` (the
         blur a true Gaussian, in the response's order, and JPEG's chroma blur), looked
-        at in the level's pixels."""
-        scene = rtjax.Scene(self.selection.scene.structure, self.selection.params(y["scene"]))
-        nuisance = y.get("nuisance", {})
+        at in the level's pixels. A photo (`fitting.photo.Photo`) alike, with its
+        appearance parameters in the scene and its own camera.
+
+        Computed in `stages`' two stages, the render and the camera after it."""
+        s = self.stages(y, samples)
+        first, second = s.split(y)
+        return s.camera(s.render(first), second)
+
+    def _kind(self, y: dict, samples: Samples) -> str:
+        """Which of `model`'s forms the level `samples` takes (static)."""
         if self.photo is not None:
-            return self.photo_model(scene, y["photo"], samples)
-
-        def render(xy, edges=samples.width):
-            return rtjax.render_samples(scene, xy, step=samples.step, depth=self.depth, edges=edges)
-
+            return "photo whole" if samples.whole else "photo"
         if samples.plain:
-            return apply_nuisance(render(samples.xy, edges=0.0), nuisance, logs=True)
+            return "plain"
         if samples.whole:
-            image = camera(rtjax.render(scene, depth=self.depth, edges=1.0), nuisance, logs=True)
-            i, j = (jnp.floor(samples.xy[:, a]).astype(jnp.int32) for a in (0, 1))
-            return image[j, i]
-        if "blur" in nuisance:
+            return "whole"
+        if "blur" in y.get("nuisance", {}):
+            return "blurred"
+        return "box" if not samples.exact else "sided"
+
+    def stages(self, y: dict, samples: Samples) -> "Stages":
+        """`residuals` on the level `samples` as a render and the camera after it
+        (`Stages`), so that `solvers.with_dense_jacobian` pushes tangents through the
+        render for the parameters it reads alone: the camera's (a photo's `CAMERA`, the
+        nuisance parameters) act on its output only, but the blur of a level coarser
+        than the image, which widens the render's edge filter."""
+        kind = self._kind(y, samples)
+        dtype = jax.tree_util.tree_leaves(y)[0].dtype  # the solver's float type (see Selection.y0)
+        scale = self.loss_scale * samples.scale
+        if not samples.exact and "blur" not in y.get("nuisance", {}) and self.photo is None:
+            scale = scale * jnp.where(samples.step > 1, COARSE_SCALE, 1.0)  # a level coarser than the image
+
+        def split(y):
+            def after(group):  # the group's entries that only the camera reads
+                return {k: v for k, v in y[group].items() if k != "blur" or samples.whole}
+
+            groups = [g for g in ("photo", "nuisance") if g in y]
+            camera_part = {g: after(g) for g in groups}
+            if self.photo is not None:
+                camera_part["photo"] = {k: v for k, v in camera_part["photo"].items() if k in self.photo.camera_keys}
+            rest = {g: {k: v for k, v in y[g].items() if k not in camera_part[g]} for g in groups}
+            return {**y, **rest}, camera_part
+
+        def render(first):
+            return self._render(kind, first, samples)
+
+        def camera(rendered, second):
+            return self._camera(kind, rendered, second, samples)
+
+        def finish(rendered, second):
+            r = (camera(rendered, second) - samples.target) * samples.weight / 255
+            return robust(r, self.loss, scale / 255).astype(dtype)
+
+        return Stages(split, render, camera, finish)
+
+    def _render(self, kind: str, y: dict, samples: Samples):
+        """The render stage of `model` (y: the part `stages` gives it)."""
+        scene = rtjax.Scene(self.selection.scene.structure, self.selection.params(y["scene"]))
+        if kind == "photo whole":
+            shown = rtjax.Scene(scene.structure, self.photo.scene(scene.params, y["photo"]))
+            return rtjax.render(shown, depth=self.depth, edges=1.0)
+        if kind == "photo":
+            shown = rtjax.Scene(scene.structure, self.photo.scene(scene.params, y["photo"]))
+            sigma = self.photo.values(y["photo"])["blur"] / samples.step
+            return rtjax.render_samples(shown, samples.xy, step=samples.step, depth=self.depth,
+                                        edges=jnp.sqrt(samples.width**2 + 12 * sigma**2))
+        if kind == "whole":
+            return rtjax.render(scene, depth=self.depth, edges=1.0)
+        if kind == "sided":
+            return rtjax.edge_samples(scene, samples.xy, step=samples.step, depth=self.depth, edges=samples.width)
+        edges = {"plain": 0.0, "box": samples.width}.get(kind)
+        if kind == "blurred":
             # coarse levels: the blur widens the edges' box filter (a box √12·σ wide has
             # the same variance; widths add in quadrature)
-            sigma = jnp.exp(nuisance["blur"]) / samples.step
-            colours = render(samples.xy, edges=jnp.sqrt(samples.width**2 + 12 * sigma**2))
-            return apply_nuisance(colours, nuisance, logs=True)
-        if not samples.exact:
-            return apply_nuisance(render(samples.xy), nuisance, logs=True)
-        e = rtjax.edge_samples(scene, samples.xy, step=samples.step, depth=self.depth, edges=samples.width)
+            sigma = jnp.exp(y["nuisance"]["blur"]) / samples.step
+            edges = jnp.sqrt(samples.width**2 + 12 * sigma**2)
+        return rtjax.render_samples(scene, samples.xy, step=samples.step, depth=self.depth, edges=edges)
+
+    def _camera(self, kind: str, rendered, y: dict, samples: Samples):
+        """The camera stage of `model`: the render's output `rendered` to the model's
+        colours at the samples (y: the part `stages` gives it)."""
+        if kind in ("photo whole", "whole"):
+            image = self.photo.camera(rendered, y["photo"]) if kind == "photo whole" else \
+                camera(rendered, y["nuisance"], logs=True)
+            i, j = (jnp.floor(samples.xy[:, a]).astype(jnp.int32) for a in (0, 1))
+            return image[j, i]
+        if kind == "photo":
+            return self.photo.camera_at(rendered, samples.xy, y["photo"])
+        nuisance = y.get("nuisance", {})
+        if kind != "sided":
+            return apply_nuisance(rendered, nuisance, logs=True)
+        e = rendered
         centre, inside, outside, flipped = (apply_nuisance(c, nuisance, logs=True)
                                             for c in (e.centre, e.inside, e.outside, e.flipped))
         across = jnp.where((e.x > 0)[:, None], outside, inside)  # the silhouette's side the centre is not on
@@ -407,29 +475,24 @@ class Objective:
 
         return centre + towards(1, e.x) * (across - centre) + towards(2, e.shadow_x) * (flipped - centre)
 
-    def photo_model(self, scene: rtjax.Scene, y: dict, samples: Samples):
-        """`model` of a photo (`fitting.photo.Photo`): the scene with its appearance
-        parameters; on the full-size level the whole render through the photo's
-        camera, on a coarse one each sample box-filtered to the blur's size."""
-        photo = self.photo
-        if samples.whole:
-            image = photo.image(scene, y, self.depth)
-            i, j = (jnp.floor(samples.xy[:, a]).astype(jnp.int32) for a in (0, 1))
-            return image[j, i]
-        scene = rtjax.Scene(scene.structure, photo.scene(scene.params, y))
-        sigma = photo.values(y)["blur"] / samples.step
-        colours = rtjax.render_samples(scene, samples.xy, step=samples.step, depth=self.depth,
-                                       edges=jnp.sqrt(samples.width**2 + 12 * sigma**2))
-        return photo.camera_at(colours, samples.xy, y)
-
     def residuals(self, y: dict, samples: Samples):
-        r = (self.model(y, samples) - samples.target) * samples.weight / 255
-        # in the solver's float type (see Selection.y0), whatever the render's precision
-        dtype = jax.tree_util.tree_leaves(y)[0].dtype
-        scale = self.loss_scale * samples.scale
-        if not samples.exact and "blur" not in y.get("nuisance", {}) and self.photo is None:
-            scale = scale * jnp.where(samples.step > 1, COARSE_SCALE, 1.0)  # a level coarser than the image
-        return robust(r, self.loss, scale / 255).astype(dtype)
+        """(model − target)·weight/255 at the samples, made robust (`robust`), in the
+        solver's float type whatever the render's precision."""
+        s = self.stages(y, samples)
+        first, second = s.split(y)
+        return s.finish(s.render(first), second)
+
+
+class Stages(NamedTuple):
+    """A residual function in two stages (`Objective.stages`): r(y) = finish(render(a), b)
+    with (a, b) = split(y), where `render` reads only a and `finish` (the camera, then
+    the residual) only b and the render's output; `camera` is finish's first part, the
+    model's colours."""
+
+    split: Callable[[dict], tuple[dict, dict]]
+    render: Callable[[dict], object]
+    camera: Callable[[object, dict], jnp.ndarray]
+    finish: Callable[[object, dict], jnp.ndarray]
 
 
 def nuisance_names(names: Sequence[str]) -> tuple[str, ...]:

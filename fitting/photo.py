@@ -149,6 +149,9 @@ class Photo:
     the maps from those coordinates to a scene (`scene`) and to a photo of its render
     (`camera`, `camera_at`)."""
 
+    #: the parameters that act on the rendered image (`Objective.stages`)
+    camera_keys = CAMERA
+
     def __init__(self, scene: rtjax.Scene):
         s, p = scene.structure, scene.params
         self.structure = s

@@ -247,6 +247,38 @@ def test_a_fitted_blur_is_the_whole_image_at_full_size_and_wider_edges_below():
     assert abs(g) > 1 and abs(g - fd) < 1e-5 * abs(fd)
 
 
+@pytest.mark.parametrize("kind", ["photo", "camera"])
+def test_staged_jacobian_is_the_plain_one(kind):
+    """`Objective.stages` splits a level's residuals into the render and the camera after
+    it; `solvers.staged_jacobian` differentiates the render in the render's parameters
+    alone. On both levels of a photo fit and of a fit with the camera's nuisance
+    parameters (a coarse level's blur widens the render's edges: the render's), the
+    Jacobian is `jax.jacfwd`'s of the residuals, in float64."""
+    from fitting.solvers import staged_jacobian
+
+    scene = scene_from_text(DECK, 16).astype(jnp.float64)
+    target = np.asarray(rtjax.render(scene)) * 0.9 + 8
+    options = FitOptions(levels=(8, 16), **({"photo": True} if kind == "photo" else {"nuisance": ("camera",)}))
+    problem = Problem.build(scene, target, "centers", None, options)
+    y = jax.tree_util.tree_map(lambda v: v + 0.01, problem.y0)  # off the start: no entry at a special value
+    assert jax.tree_util.tree_leaves(y)[0].dtype == jnp.float64
+    flat, unravel = jax.flatten_util.ravel_pytree(y)
+    assert [s.whole for s in problem.pyramid] == [False, True]
+    for samples in problem.pyramid:
+        stages = problem.objective.stages(y, samples)
+        first, second = stages.split(y)
+        group = "photo" if kind == "photo" else "nuisance"
+        assert set(first[group]) | set(second[group]) == set(y[group]) and not set(first[group]) & set(second[group])
+        assert ("blur" in second[group]) == samples.whole and {"gain", "gamma"} <= set(second[group])
+        jac, value = jax.jit(lambda y: staged_jacobian(stages, y))(y)
+        expect, residuals = jax.jit(jax.jacfwd(lambda v: (problem.objective.residuals(unravel(v), samples),) * 2,
+                                               has_aux=True))(flat)
+        np.testing.assert_allclose(np.asarray(value), np.asarray(residuals), rtol=0, atol=1e-12)
+        scale = float(np.abs(expect).max())
+        assert scale > 0
+        np.testing.assert_allclose(np.asarray(jac), np.asarray(expect), rtol=0, atol=1e-9 * scale)
+
+
 def test_nuisance_names():
     assert nuisance_names(["camera"]) == ("gain", "gamma", "blur", "chroma", "order")
     assert nuisance_names(["blur", "gain"]) == ("gain", "blur")
