@@ -366,7 +366,7 @@ def fit(scene: rtjax.Scene | Sequence[rtjax.Scene], target, free: str | Sequence
         problem = dataclasses.replace(problem, objective=Smoothed(problem.objective, problem.selection, options.smooth))
     stepper = Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac)
     pyramid = problem.pyramid
-    ahead = stepper.compile_ahead(problem.y0, pyramid[-1]) if len(pyramid) > 1 and pyramid[-1].whole else None
+    ahead = stepper.compile_ahead(problem.y0, pyramid[0], pyramid[-1]) if len(pyramid) > 1 and pyramid[-1].whole else None
     single = Single(stepper, ahead)
     result = fit_starts(problem, single, problem.y0, [problem.scene], options, callback, started=started).best
     if ahead is not None:

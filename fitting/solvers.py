@@ -213,19 +213,24 @@ class Stepper:
         f_struct, aux_struct = jax.eval_shape(lambda: self.fn(y, args))
         return self.solver.init(self.fn, y, args, self.options, f_struct, aux_struct, frozenset())
 
-    def compile_ahead(self, y, args) -> threading.Thread:
-        """Compiles `step` for the level `args` in a background thread, started and
-        returned: a level with a program of its own (a photo's whole-image level) is
-        compiled while the levels before it run, and its first step finds the
-        executable (JAX keeps it) instead of compiling on the critical path."""
-
-        def work():
-            a = self.args(args)
-            self._step.lower(y, self._init(y, a), a).compile()
-
-        thread = threading.Thread(target=work, name="compile ahead", daemon=True)
+    def compile_ahead(self, y, first, last) -> threading.Thread:
+        """Compiles `step` for the levels `first` and `last` (their samples), `last` in a
+        background thread, started and returned: a level with a program of its own (a
+        photo's whole-image level) is compiled while the levels before it run, and its
+        first step finds the executable (JAX keeps it) instead of compiling on the
+        critical path. The thread starts once `first`'s programs are traced on this
+        thread: tracing holds Python's lock, so two traces at once would each take
+        twice as long, whereas XLA's compile of one overlaps the other's trace."""
+        lowered = self._lower(y, self.args(first))
+        thread = threading.Thread(target=lambda: self._lower(y, self.args(last)).compile(), name="compile ahead",
+                                  daemon=True)
         thread.start()
+        lowered.compile()
         return thread
+
+    def _lower(self, y, args):
+        """`step` traced and lowered at y for `args` (its init run to give the state)."""
+        return self._step.lower(y, self._init(y, args), args)
 
     def advance(self, y, state, args):
         """One solver step: returns (y, state, done, result code, loss), where y is the last
