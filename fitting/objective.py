@@ -428,24 +428,18 @@ class Objective:
     def _render(self, kind: str, y: dict, samples: Samples):
         """The render stage of `model` (y: the part `stages` gives it)."""
         scene = rtjax.Scene(self.selection.scene.structure, self.selection.params(y["scene"]))
-        if kind == "photo whole":
-            shown = rtjax.Scene(scene.structure, self.photo.scene(scene.params, y["photo"]))
-            return rtjax.render(shown, depth=self.depth, edges=1.0)
-        if kind == "photo":
-            shown = rtjax.Scene(scene.structure, self.photo.scene(scene.params, y["photo"]))
-            sigma = self.photo.values(y["photo"])["blur"] / samples.step
-            return rtjax.render_samples(shown, samples.xy, step=samples.step, depth=self.depth,
-                                        edges=jnp.sqrt(samples.width**2 + 12 * sigma**2))
-        if kind == "whole":
+        if self.photo is not None:
+            scene = rtjax.Scene(scene.structure, self.photo.scene(scene.params, y["photo"]))
+        if kind in ("photo whole", "whole"):
             return rtjax.render(scene, depth=self.depth, edges=1.0)
         if kind == "sided":
             return rtjax.edge_samples(scene, samples.xy, step=samples.step, depth=self.depth, edges=samples.width)
-        edges = {"plain": 0.0, "box": samples.width}.get(kind)
-        if kind == "blurred":
+        edges = 0.0 if kind == "plain" else samples.width
+        if kind in ("photo", "blurred"):
             # coarse levels: the blur widens the edges' box filter (a box √12·σ wide has
             # the same variance; widths add in quadrature)
-            sigma = jnp.exp(y["nuisance"]["blur"]) / samples.step
-            edges = jnp.sqrt(samples.width**2 + 12 * sigma**2)
+            blur = self.photo.values(y["photo"])["blur"] if kind == "photo" else jnp.exp(y["nuisance"]["blur"])
+            edges = jnp.sqrt(samples.width**2 + 12 * (blur / samples.step) ** 2)
         return rtjax.render_samples(scene, samples.xy, step=samples.step, depth=self.depth, edges=edges)
 
     def _camera(self, kind: str, rendered, y: dict, samples: Samples):
