@@ -111,11 +111,13 @@ def with_dense_jacobian(fn, stages=None):
         @dense.defjvp
         def dense_jvp(primals, tangents):
             (y, arrays), (ydot, _) = primals, tangents
-            flat, unravel = jax.flatten_util.ravel_pytree(y)
-            step, _ = jax.flatten_util.ravel_pytree(ydot)
             a = eqx.combine(arrays, static)
-            jac, value = staged_jacobian(stages(y, a), y) if stages is not None else \
-                jax.jacfwd(lambda v: (fn(unravel(v), a),) * 2, has_aux=True)(flat)
+            if stages is not None:
+                jac, value = staged_jacobian(stages(y, a), y)
+            else:
+                flat, unravel = jax.flatten_util.ravel_pytree(y)
+                jac, value = jax.jacfwd(lambda v: (fn(unravel(v), a),) * 2, has_aux=True)(flat)
+            step, _ = jax.flatten_util.ravel_pytree(ydot)
             return value, jnp.tensordot(jac, step, axes=1)
 
         return dense(y, arrays)
