@@ -252,26 +252,3 @@ def first_hits(s: rtjax.Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     shape = (s.structure.height, s.structure.width)
     return index.reshape(shape), point.reshape(*shape, 3), normal.reshape(*shape, 3)
 
-
-@pytest.mark.parametrize("cos_t, sin2_s", [(1.0, 0.1), (0.6, 0.3), (0.3, 0.3), (0.0, 0.5), (-0.4, 0.6), (-0.9, 0.5), (0.2, 0.999)])
-def test_form_factor_is_the_covered_share_of_the_hemisphere(cos_t, sin2_s):
-    """A sphere at angle θ from the normal subtending σ: the sampled share of
-    cosine-weighted directions that meet it, in and past the horizon-clipped range."""
-    d = 10.0
-    centre = d * np.array([np.sqrt(1 - cos_t**2), 0, cos_t])
-    sampled = monte_carlo_hidden(np.zeros(3), np.array([0, 0, 1.0]), [centre], [d * np.sqrt(sin2_s)], [1.0], count=400_000)
-    got = float(form_factor(jnp.asarray(cos_t, jnp.float64), jnp.asarray(sin2_s, jnp.float64)))
-    assert abs(got - sampled) < 3e-3, (got, sampled)
-
-
-def test_form_factor_limits():
-    """Wholly above the horizon: cos θ·sin²σ. A sphere as large as a plane (σ → 90°):
-    (1 + cos θ)/2, the share of the hemisphere below a plane. Below the horizon: 0."""
-    c = np.linspace(-1, 1, 41)
-    s2 = 0.2
-    above = c * c > s2
-    got = np.asarray(form_factor(jnp.asarray(c), jnp.asarray(s2, jnp.float64)))
-    np.testing.assert_allclose(got[above & (c > 0)], c[above & (c > 0)] * s2, rtol=1e-12)
-    assert np.all(got[above & (c < 0)] == 0)
-    plane = np.asarray(form_factor(jnp.asarray(c[1:-1]), jnp.asarray(1 - 1e-9, jnp.float64)))
-    np.testing.assert_allclose(plane, (1 + c[1:-1]) / 2, atol=1e-4)
