@@ -421,6 +421,17 @@ def big(name: str) -> rtjax.Scene:
     return s
 
 
+@functools.lru_cache(maxsize=None)
+def every_pixel_in_the_mode(name: str, subdivide: bool = False) -> np.ndarray:
+    """`big(name)` traced in the mode at every pixel centre (`render_samples`), (H·W, 3),
+    compiled under `quick_xla`: the whole-image tests' yardstick, kept for the module
+    (the glass scene's serves two tests)."""
+    s = big(name)
+    with quick_xla(clear=True):
+        return np.asarray(rtjax.render_samples(s, _pixel_centres(s), depth=DECKS[name][1], edges=WIDTH,
+                                               subdivide=subdivide))
+
+
 def test_edge_pixels_are_those_beside_a_change_of_key():
     keys = np.full((12, 16), 7, np.uint32)  # the lattice and a ring `reach` wide around it
     keys[:, 9:] = 8  # a vertical edge between columns 8 and 9
@@ -466,9 +477,8 @@ def test_whole_image_is_every_pixel_traced_in_the_mode(name):
     depth = DECKS[name][1]
     with quick_xla(clear=True):  # an agreement of two programs, not bits; the compile is what costs
         whole = np.asarray(rtjax.render(s, depth=depth, edges=WIDTH)).reshape(-1, 3)
-        every = np.asarray(rtjax.render_samples(s, _pixel_centres(s), depth=depth, edges=WIDTH))
         centres = np.asarray(rtjax.render(s, depth=depth)).reshape(-1, 3)
-    np.testing.assert_allclose(whole, every, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(whole, every_pixel_in_the_mode(name), rtol=0, atol=1e-9)
     assert np.abs(whole - centres).max() > 20  # edges blended
 
 
@@ -481,8 +491,7 @@ def test_whole_image_with_sub_boxes_is_every_pixel_traced_in_the_mode():
     depth = DECKS["glass"][1]
     with quick_xla(clear=True):  # an agreement of two programs, not bits; the compile is what costs
         whole = np.asarray(rtjax.render(s, depth=depth, edges=WIDTH, subdivide=True)).reshape(-1, 3)
-        every = np.asarray(rtjax.render_samples(s, _pixel_centres(s), depth=depth, edges=WIDTH, subdivide=True))
-        one_box = np.asarray(rtjax.render_samples(s, _pixel_centres(s), depth=depth, edges=WIDTH))
+    every, one_box = every_pixel_in_the_mode("glass", True), every_pixel_in_the_mode("glass")
     np.testing.assert_allclose(whole, every, rtol=0, atol=1e-9)
     assert np.abs(every - one_box).max() > 0.5  # measured 0.99
 
