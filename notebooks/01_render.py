@@ -8,7 +8,7 @@
 # numbers quoted in the text are printed by the cells above them.
 
 # %%
-import pathlib, struct, tempfile, time
+import pathlib, shutil, struct, tempfile, time
 
 import jax
 import numpy as np
@@ -179,6 +179,7 @@ print(f"largest change from the float render: {np.abs(back - np.asarray(image)).
 rtjax.save_image(tmp / "literal.sunimg", image, assignment_order=True)
 swapped = rtjax.load_image(tmp / "literal.sunimg")
 literal = rtjax.load_image(tmp / "literal.sunimg", assignment_order=True)
+shutil.rmtree(tmp)
 print("assignment order read in assignment order is the image:", np.array_equal(literal, want))
 show([image, back, swapped], ["render", "written and read back (.sunimg)", "assignment order read as standard"], height=2.6)
 

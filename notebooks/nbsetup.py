@@ -59,7 +59,9 @@ def show_png(draw, *args):
     from IPython import get_ipython
     from IPython.display import Image, display
 
-    path = os.path.join(tempfile.mkdtemp(prefix="rtjax_nb_"), "plot.png")
-    draw(*args, path)
+    with tempfile.TemporaryDirectory(prefix="rtjax_nb_") as folder:
+        path = os.path.join(folder, "plot.png")
+        draw(*args, path)
+        image = Image(filename=path)  # reads the file's bytes now
     get_ipython().run_line_magic("matplotlib", "inline")
-    display(Image(filename=path))
+    display(image)

@@ -69,15 +69,16 @@ def build(name: str) -> nbformat.NotebookNode:
     return nb
 
 
-def kernel_env(quick: bool) -> dict[str, str]:
+def kernel_env(quick: bool, cache: str) -> dict[str, str]:
     """The kernel's environment: this process's, with RTJAX_NOTEBOOK_QUICK=1 and
-    QUICK_COMPILES in quick mode, without RTJAX_NOTEBOOK_QUICK otherwise."""
+    QUICK_COMPILES in quick mode (and JAX's compilation cache in the folder `cache`
+    unless the environment names one), without RTJAX_NOTEBOOK_QUICK otherwise."""
     env = {k: v for k, v in os.environ.items() if k != QUICK_ENV}
     if quick:
         env[QUICK_ENV] = "1"
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + QUICK_COMPILES["XLA_FLAGS"]).strip()
         if not env.get("JAX_COMPILATION_CACHE_DIR"):
-            env["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="rtjax_nb_jax_cache_")
+            env["JAX_COMPILATION_CACHE_DIR"] = cache
     return env
 
 
@@ -87,8 +88,9 @@ def execute(nb: nbformat.NotebookNode, *, quick: bool, timeout: int = 900, recor
     from nbclient import NotebookClient
 
     t0 = time.perf_counter()
-    NotebookClient(nb, timeout=timeout, kernel_name="python3", resources={"metadata": {"path": NOTEBOOKS}},
-                   record_timing=record_timing).execute(env=kernel_env(quick))
+    with tempfile.TemporaryDirectory(prefix="rtjax_nb_jax_cache_") as cache:
+        NotebookClient(nb, timeout=timeout, kernel_name="python3", resources={"metadata": {"path": NOTEBOOKS}},
+                       record_timing=record_timing).execute(env=kernel_env(quick, cache))
     return time.perf_counter() - t0
 
 
