@@ -120,6 +120,20 @@ class Parallel:
         ys = jax.tree.map(lambda a: jnp.asarray(_host(a)), ys)  # every start's end, on this process
         return [jax.tree.map(lambda a: a[k], ys) for k in range(count)]
 
+    def evaluate(self, points, samples):
+        """Up to `size` points in one call of the fit's compiled step (the rest of the
+        starts axis padded and left inactive)."""
+        out = []
+        for first in range(0, len(points), self.size):
+            chunk = list(points[first:first + self.size])
+            ys = self.pad(jax.tree.map(lambda *a: jnp.stack(a), *chunk))
+            active = np.arange(self.size) < len(chunk)
+            _, states, _, _, losses = self.step(ys, self.init(ys, samples), samples, active)
+            states = jax.tree.map(lambda a: np.asarray(_host(a)) if eqx.is_array(a) else a, states)
+            out.extend((float(losses[k]), jax.tree.map(lambda a: a[k] if eqx.is_array(a) else a, states))
+                       for k in range(len(chunk)))
+        return out
+
     def _over_starts(self, fn, batched, shared):
         """fn(batched..., shared...) over the starts of `batched` (non-array parts, the
         solver's static state, pass through). With a mesh, every array with a starts
@@ -226,7 +240,6 @@ def fit_multistart(scene: rtjax.Scene, target, free: str | Sequence[str] = "cent
     begun = [rtjax.Scene(structure, problem.selection.params(jax.tree.map(lambda a: a[k], ys)["scene"]))
              for k in range(starts)]
     result = fit_starts(problem, stepper, stepper.pad(ys), begun, options, callback, started=started, several=True)
-    if options.photo or options.nuisance:  # judged on one start: a single start's compiled step
-        single = Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac)
-        result.best.verdict = judge(problem, single, result.best.y)
+    if options.photo or options.nuisance:  # judged with the starts' own compiled step
+        result.best.verdict = judge(problem, stepper, result.best.y)
     return result

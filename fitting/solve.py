@@ -193,6 +193,12 @@ class Steps(Protocol):
     def unstack(self, ys, count: int) -> list[dict]:
         """The first `count` starts of `ys`, each a y on this process."""
 
+    def evaluate(self, points: Sequence[dict], samples) -> list[tuple[float, object]]:
+        """Each of `points` (ys of one start) on the level `samples`: (loss, solver
+        state) after a first step from it, which evaluates the point (a least-squares
+        solver's state then holds its residuals and Jacobian there), with the compiled
+        programs of the fit's own steps."""
+
 
 class Single:
     """`Steps` of one start: `Stepper.step` unbatched, its outputs given a leading axis of
@@ -220,6 +226,13 @@ class Single:
 
     def unstack(self, y, count):
         return [y]
+
+    def evaluate(self, points, samples):
+        out = []
+        for y in points:
+            _, state, _, _, loss = self.stepper.step(y, self.init(y, samples), samples)
+            out.append((float(loss), state))
+        return out
 
     def end(self, y, samples) -> tuple[float, object] | None:
         """(loss, solver state) of the last step if it was on the level `samples` and
@@ -374,6 +387,6 @@ def fit(scene: rtjax.Scene | Sequence[rtjax.Scene], target, free: str | Sequence
     if "textures" in problem.selection.families:
         result.texels = coverage(views, options.mask, options.depth, smoothed=bool(options.smooth))
     if options.photo or options.nuisance:
-        result.verdict = judge(problem, stepper, result.y, single.end(result.y, problem.pyramid[-1]))
+        result.verdict = judge(problem, single, result.y, single.end(result.y, problem.pyramid[-1]))
     result.times["total"] = time.perf_counter() - started  # the coverage and verdict included
     return result

@@ -133,25 +133,22 @@ def bounds_reached(y: dict, photo=None) -> dict[str, float]:
     return out
 
 
-def judge(problem, stepper, y: dict, end: tuple[float, object] | None = None) -> Verdict:
+def judge(problem, steps, y: dict, end: tuple[float, object] | None = None) -> Verdict:
     """The verdict on a fit of `problem` (a `fitting.problem.Problem`) that ended at `y`.
 
-    `stepper`: the fit's `solvers.Stepper`; its compiled init and step evaluate the
-    full-size level at `y` and at the start's geometry (the first step of a solver
-    evaluates its start), so that nothing new is compiled; the Jacobian comes from the
-    step's linearisation (forward-mode fits; 'bwd' fits report no uncertainty).
-    `end`: (loss, solver state) of the fit's last step on that level where it ended at
-    `y` (`solve.Single.end`): the same numbers, one full-size evaluation saved."""
+    `steps`: the fit's `solve.Steps` (one start's or several starts'); its `evaluate`
+    runs the full-size level at `y` and at the start's geometry with the fit's own
+    compiled programs (nothing new is compiled; several starts' evaluate both in one
+    call); the Jacobian comes from the step's linearisation (forward-mode fits; 'bwd'
+    fits report no uncertainty). `end`: (loss, solver state) of the fit's last step on
+    that level where it ended at `y` (`solve.Single.end`): the same numbers, one
+    full-size evaluation saved."""
     level = problem.pyramid[-1]
     objective = problem.objective
-
-    def evaluate(at):
-        state = stepper.init(at, level)
-        _, state, _, _, loss = stepper.step(at, state, level)
-        return float(loss), state
-
-    end, state = evaluate(y) if end is None else end
-    start, _ = evaluate(dict(y, scene=problem.y0["scene"]))
+    points = [dict(y, scene=problem.y0["scene"])] if end is not None else [y, dict(y, scene=problem.y0["scene"])]
+    evaluated = steps.evaluate(points, level)
+    end, state = end if end is not None else evaluated[0]
+    start = evaluated[-1][0]
     target = np.asarray(level.target, np.float64)
     weight = np.asarray(level.weight, np.float64)
     mean = (target * weight).sum(0) / max(weight.sum(), 1e-12)

@@ -10,6 +10,7 @@ import json
 import subprocess
 import sys
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -189,7 +190,7 @@ def test_verdict_from_the_last_step_equals_a_fresh_evaluation(small_fit):
     assert single.end(problem.y0, level) is None  # not where it ended
     end = single.end(y, level)
     assert end is not None
-    fresh, reused = judge(problem, stepper, y), judge(problem, stepper, y, end)
+    fresh, reused = judge(problem, single, y), judge(problem, single, y, end)
     assert reused.as_dict() == fresh.as_dict()
     assert [s["index"] for s in fresh.spheres] == [0, 1] and all(np.isfinite(s["sigma_px"]) for s in fresh.spheres)
 
@@ -201,23 +202,45 @@ def test_verdict_names_a_non_finite_jacobian(small_fit):
     the fit's own stepper with one Jacobian entry replaced by NaN."""
     from types import SimpleNamespace
 
+    from fitting.solve import Single
     from fitting.verdict import judge
 
     problem, stepper = small_fit
 
-    class Poisoned:
-        def init(self, y, level):
-            return stepper.init(y, level)
+    class Poisoned(Single):
+        def evaluate(self, points, level):
+            out = []
+            for loss, state in super().evaluate(points, level):
+                jac = np.array(state.f_info.jac.as_matrix(), np.float64)
+                jac[0, 0] = np.nan
+                info = SimpleNamespace(jac=SimpleNamespace(as_matrix=lambda jac=jac: jac), residual=state.f_info.residual)
+                out.append((loss, SimpleNamespace(f_info=info)))
+            return out
 
-        def step(self, y, state, level):
-            y, state, *rest = stepper.step(y, state, level)
-            jac = np.array(state.f_info.jac.as_matrix(), np.float64)
-            jac[0, 0] = np.nan
-            info = SimpleNamespace(jac=SimpleNamespace(as_matrix=lambda: jac), residual=state.f_info.residual)
-            return (y, SimpleNamespace(f_info=info), *rest)
-
-    v = judge(problem, Poisoned(), problem.y0)
+    v = judge(problem, Poisoned(stepper), problem.y0)
     assert not v.ok and v.spheres == []
     assert [c for c in v.causes if c.startswith("undetermined:")] == [
         "undetermined: the Jacobian and residuals at the end hold 1 non-finite values (the render is singular there): "
         "no uncertainty can be given"]
+
+
+@pytest.mark.slow
+def test_several_starts_judge_as_one(small_fit):
+    """A multi-start fit's verdict comes from its own batched step
+    (`multistart.Parallel.evaluate`: the end and the start's geometry in one call, the
+    rest of the starts axis inactive): the same as one start's, to rounding."""
+    from fitting.multistart import Parallel
+    from fitting.solve import Single
+    from fitting.verdict import judge
+
+    problem, stepper = small_fit
+    y = jax.tree_util.tree_map(lambda v: v + 0.05, problem.y0)  # geometry and appearance off the start
+    one, several = judge(problem, Single(stepper), y), judge(problem, Parallel(stepper, None, "map", 3), y)
+    assert several.causes == one.causes and several.bounds == one.bounds
+    for k in ("end", "start", "flat"):
+        assert several.losses[k] == pytest.approx(one.losses[k], rel=1e-9)
+    assert one.losses["start"] != one.losses["end"]
+    assert [s["index"] for s in several.spheres] == [s["index"] for s in one.spheres] == [0, 1]
+    for a, b in zip(several.spheres, one.spheres):  # σ and bias: float32 Jacobians of two programs, solved
+        assert a["moved_px"] == b["moved_px"]
+        np.testing.assert_allclose([a["sigma_px"], a["bias_px"]], [b["sigma_px"], b["bias_px"]], rtol=1e-4)
