@@ -32,7 +32,7 @@ from .errors import FitError
 from .options import FitOptions
 from .problem import Problem
 from .solve import MultiStartResult, fit_starts
-from .solvers import CODES, Stepper
+from .solvers import CODES, Stepper, compile_ahead
 from .verdict import judge
 
 #: The mesh axis the starts are laid out over.
@@ -98,6 +98,7 @@ class Parallel:
         self._init = eqx.filter_jit(self._initial)
         self._step = eqx.filter_jit(self._advance)
         self._keep = eqx.filter_jit(_select)
+        self.ahead = None  # compiling the whole-image level's step (`compile_ahead`)
 
     def pad(self, ys):
         """Starts `ys` (K, ...) padded to `size` with copies of the last."""
@@ -106,7 +107,21 @@ class Parallel:
             return ys
         return jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], extra, axis=0)]), ys)
 
+    def compile_ahead(self, ys, first, last):
+        """Compiles the step of the starts `ys` (padded) for the levels `first` and
+        `last`, `last` in a background thread (`solvers.compile_ahead`) that `init`
+        waits for on a whole-image level."""
+        active = jnp.ones(self.size, bool)
+
+        def lower(samples):
+            args = self.stepper.args(samples)
+            return self._step.lower(ys, self._init(ys, args), args, active)
+
+        self.ahead = compile_ahead(lower, first, last)
+
     def init(self, ys, samples):
+        if self.ahead is not None and samples.whole:
+            self.ahead.join()  # its step compiled once, not again beside it
         return self._init(ys, self.stepper.args(samples))
 
     def step(self, ys, states, samples, active):
@@ -235,11 +250,16 @@ def fit_multistart(scene: rtjax.Scene, target, free: str | Sequence[str] = "cent
         mode = "map" if mesh is None and jax.devices()[0].platform == "cpu" else "vmap"
     stepper = Parallel(Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac), mesh, mode,
                        starts)
-    ys = perturbed_starts(problem.y0, starts, spread, seed)
+    ys = stepper.pad(perturbed_starts(problem.y0, starts, spread, seed))
+    pyramid = problem.pyramid
+    if len(pyramid) > 1 and pyramid[-1].whole:
+        stepper.compile_ahead(ys, pyramid[0], pyramid[-1])
     structure = problem.scene.structure
     begun = [rtjax.Scene(structure, problem.selection.params(jax.tree.map(lambda a: a[k], ys)["scene"]))
              for k in range(starts)]
-    result = fit_starts(problem, stepper, stepper.pad(ys), begun, options, callback, started=started, several=True)
+    result = fit_starts(problem, stepper, ys, begun, options, callback, started=started, several=True)
+    if stepper.ahead is not None:
+        stepper.ahead.join()
     if options.photo or options.nuisance:  # judged with the starts' own compiled step
         result.best.verdict = judge(problem, stepper, result.best.y)
     return result

@@ -151,6 +151,22 @@ def staged_jacobian(s: Stages, y: dict):
     return jac, value
 
 
+def compile_ahead(lower, first, last) -> threading.Thread:
+    """Compiles a fit's step for the levels `first` and `last` (their samples; `lower`
+    gives a level's step traced and lowered), `last` in a background thread, started and
+    returned: a level with a program of its own (a photo's whole-image level) is
+    compiled while the levels before it run, and its first step finds the executable
+    (JAX keeps it) instead of compiling on the critical path. The thread starts once
+    `first`'s program is traced on this thread: tracing holds Python's lock, so two
+    traces at once would each take twice as long, whereas XLA's compile of one overlaps
+    the other's trace."""
+    lowered = lower(first)
+    thread = threading.Thread(target=lambda: lower(last).compile(), name="compile ahead", daemon=True)
+    thread.start()
+    lowered.compile()
+    return thread
+
+
 class Stepper:
     """A solver's init and step on one start, for every level of a fit.
 
@@ -216,23 +232,10 @@ class Stepper:
         return self.solver.init(self.fn, y, args, self.options, f_struct, aux_struct, frozenset())
 
     def compile_ahead(self, y, first, last) -> threading.Thread:
-        """Compiles `step` for the levels `first` and `last` (their samples), `last` in a
-        background thread, started and returned: a level with a program of its own (a
-        photo's whole-image level) is compiled while the levels before it run, and its
-        first step finds the executable (JAX keeps it) instead of compiling on the
-        critical path. The thread starts once `first`'s programs are traced on this
-        thread: tracing holds Python's lock, so two traces at once would each take
-        twice as long, whereas XLA's compile of one overlaps the other's trace."""
-        lowered = self._lower(y, self.args(first))
-        thread = threading.Thread(target=lambda: self._lower(y, self.args(last)).compile(), name="compile ahead",
-                                  daemon=True)
-        thread.start()
-        lowered.compile()
-        return thread
-
-    def _lower(self, y, args):
-        """`step` traced and lowered at y for `args` (its init run to give the state)."""
-        return self._step.lower(y, self._init(y, args), args)
+        """Compiles `step` for the levels `first` and `last` (their samples) at y, `last`
+        in a background thread (`compile_ahead`)."""
+        return compile_ahead(lambda samples: self._step.lower(y, self._init(y, self.args(samples)), self.args(samples)),
+                             first, last)
 
     def advance(self, y, state, args):
         """One solver step: returns (y, state, done, result code, loss), where y is the last
