@@ -107,17 +107,16 @@ class Parallel:
             return ys
         return jax.tree.map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], extra, axis=0)]), ys)
 
-    def compile_ahead(self, ys, first, last):
-        """Compiles the step of the starts `ys` (padded) for the levels `first` and
-        `last`, `last` in a background thread (`solvers.compile_ahead`) that `init`
-        waits for on a whole-image level."""
+    def compile_ahead(self, ys, pyramid):
+        """`solvers.compile_ahead` of the step of the starts `ys` (padded) over the levels
+        `pyramid`; `init` waits for its thread on a whole-image level."""
         active = jnp.ones(self.size, bool)
 
         def lower(samples):
             args = self.stepper.args(samples)
             return self._step.lower(ys, self._init(ys, args), args, active)
 
-        self.ahead = compile_ahead(lower, first, last)
+        self.ahead = compile_ahead(lower, pyramid)
 
     def init(self, ys, samples):
         if self.ahead is not None and samples.whole:
@@ -251,9 +250,7 @@ def fit_multistart(scene: rtjax.Scene, target, free: str | Sequence[str] = "cent
     stepper = Parallel(Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac), mesh, mode,
                        starts)
     ys = stepper.pad(perturbed_starts(problem.y0, starts, spread, seed))
-    pyramid = problem.pyramid
-    if len(pyramid) > 1 and pyramid[-1].whole:
-        stepper.compile_ahead(ys, pyramid[0], pyramid[-1])
+    stepper.compile_ahead(ys, problem.pyramid)
     structure = problem.scene.structure
     begun = [rtjax.Scene(structure, problem.selection.params(jax.tree.map(lambda a: a[k], ys)["scene"]))
              for k in range(starts)]

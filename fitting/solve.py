@@ -378,12 +378,10 @@ def fit(scene: rtjax.Scene | Sequence[rtjax.Scene], target, free: str | Sequence
             raise FitError("smooth is a prior on texels: fit textures with it")
         problem = dataclasses.replace(problem, objective=Smoothed(problem.objective, problem.selection, options.smooth))
     stepper = Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac)
-    pyramid = problem.pyramid
-    ahead = stepper.compile_ahead(problem.y0, pyramid[0], pyramid[-1]) if len(pyramid) > 1 and pyramid[-1].whole else None
-    single = Single(stepper, ahead)
+    single = Single(stepper, stepper.compile_ahead(problem.y0, problem.pyramid))
     result = fit_starts(problem, single, problem.y0, [problem.scene], options, callback, started=started).best
-    if ahead is not None:
-        ahead.join()
+    if single.ahead is not None:
+        single.ahead.join()
     if "textures" in problem.selection.families:
         result.texels = coverage(views, options.mask, options.depth, smoothed=bool(options.smooth))
     if options.photo or options.nuisance:

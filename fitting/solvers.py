@@ -151,17 +151,20 @@ def staged_jacobian(s: Stages, y: dict):
     return jac, value
 
 
-def compile_ahead(lower, first, last) -> threading.Thread:
-    """Compiles a fit's step for the levels `first` and `last` (their samples; `lower`
-    gives a level's step traced and lowered), `last` in a background thread, started and
-    returned: a level with a program of its own (a photo's whole-image level) is
-    compiled while the levels before it run, and its first step finds the executable
-    (JAX keeps it) instead of compiling on the critical path. The thread starts once
-    `first`'s program is traced on this thread: tracing holds Python's lock, so two
-    traces at once would each take twice as long, whereas XLA's compile of one overlaps
-    the other's trace."""
-    lowered = lower(first)
-    thread = threading.Thread(target=lambda: lower(last).compile(), name="compile ahead", daemon=True)
+def compile_ahead(lower, pyramid) -> threading.Thread | None:
+    """Where a fit's levels `pyramid` end in a whole-image level after coarser ones (a
+    photo's, with a program of its own): compiles the first level's step here and the
+    last's in a background thread, started and returned (else None). `lower` gives a
+    level's step traced and lowered. The last level's program is compiled while the
+    levels before it run, and its first step finds the executable (JAX keeps it)
+    instead of compiling on the critical path. The thread starts once the first level's
+    program is traced on this thread: tracing holds Python's lock, so two traces at
+    once would each take twice as long, whereas XLA's compile of one overlaps the
+    other's trace."""
+    if len(pyramid) < 2 or not pyramid[-1].whole:
+        return None
+    lowered = lower(pyramid[0])
+    thread = threading.Thread(target=lambda: lower(pyramid[-1]).compile(), name="compile ahead", daemon=True)
     thread.start()
     lowered.compile()
     return thread
@@ -231,11 +234,14 @@ class Stepper:
         f_struct, aux_struct = jax.eval_shape(lambda: self.fn(y, args))
         return self.solver.init(self.fn, y, args, self.options, f_struct, aux_struct, frozenset())
 
-    def compile_ahead(self, y, first, last) -> threading.Thread:
-        """Compiles `step` for the levels `first` and `last` (their samples) at y, `last`
-        in a background thread (`compile_ahead`)."""
-        return compile_ahead(lambda samples: self._step.lower(y, self._init(y, self.args(samples)), self.args(samples)),
-                             first, last)
+    def compile_ahead(self, y, pyramid) -> threading.Thread | None:
+        """`compile_ahead` of `step` at y over the levels `pyramid`."""
+
+        def lower(samples):
+            args = self.args(samples)
+            return self._step.lower(y, self._init(y, args), args)
+
+        return compile_ahead(lower, pyramid)
 
     def advance(self, y, state, args):
         """One solver step: returns (y, state, done, result code, loss), where y is the last
