@@ -241,6 +241,10 @@ def fit_multistart(scene: rtjax.Scene, target, free: str | Sequence[str] = "cent
         mesh = rtjax.device_mesh(devices)
     except rtjax.RtjaxError as e:
         raise FitError(str(e)) from None
+    if mesh is not None and mesh.devices.size > 1 and (options.photo or options.nuisance) \
+            and jax.devices()[0].platform == "cpu":
+        raise FitError("a camera model (--photo, --nuisance) with the starts over several CPU devices hangs in "
+                       "XLA's sharded step (a known issue): use one device")
     if mesh is not None:
         mesh = Mesh(mesh.devices, (AXIS,))
     started = time.perf_counter()

@@ -17,6 +17,7 @@ import os
 import shutil
 import tempfile
 
+import jax
 import numpy as np
 import pytest
 from conftest import Job, quick_env, truth_deck
@@ -150,3 +151,17 @@ def test_bad_starts_and_devices_are_errors(truth):
     with pytest.raises(SystemExit):
         cli.main(["fit", "d.dat", "t.sunimg", "--starts", "0"])
 
+
+
+def test_camera_model_over_several_cpu_devices_is_refused(truth, monkeypatch):
+    """A photo or camera-nuisance multi-start fit over several CPU devices hung in the
+    sharded step (seen with two forced host devices); it is refused with a clear error
+    instead (before anything is compiled)."""
+    from types import SimpleNamespace
+
+    two = SimpleNamespace(devices=np.array(jax.devices()[:1] * 2))
+    monkeypatch.setattr(rtjax, "device_mesh", lambda devices: two)
+    target = np.zeros((truth.structure.height, truth.structure.width, 3))
+    for camera in ({"photo": True}, {"nuisance": ("camera",)}):
+        with pytest.raises(fitting.FitError, match="several CPU devices hangs"):
+            fitting.fit_multistart(truth, target, starts=2, devices=2, **camera)
