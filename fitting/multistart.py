@@ -241,10 +241,11 @@ def fit_multistart(scene: rtjax.Scene, target, free: str | Sequence[str] = "cent
         mesh = rtjax.device_mesh(devices)
     except rtjax.RtjaxError as e:
         raise FitError(str(e)) from None
-    if mesh is not None and mesh.devices.size > 1 and (options.photo or options.nuisance) \
+    if mesh is not None and 1 < mesh.devices.size < starts and (options.photo or options.nuisance) \
             and jax.devices()[0].platform == "cpu":
-        raise FitError("a camera model (--photo, --nuisance) with the starts over several CPU devices hangs in "
-                       "XLA's sharded step (a known issue): use one device")
+        raise FitError(f"a camera model (--photo, --nuisance) with {starts} starts over {mesh.devices.size} CPU devices "
+                       "hangs in XLA's sharded step when a device holds two starts or more (a known issue): give "
+                       "at most one start per device, or use one device")
     if mesh is not None:
         mesh = Mesh(mesh.devices, (AXIS,))
     started = time.perf_counter()

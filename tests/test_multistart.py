@@ -155,13 +155,23 @@ def test_bad_starts_and_devices_are_errors(truth):
 
 def test_camera_model_over_several_cpu_devices_is_refused(truth, monkeypatch):
     """A photo or camera-nuisance multi-start fit over several CPU devices hung in the
-    sharded step (seen with two forced host devices); it is refused with a clear error
-    instead (before anything is compiled)."""
+    sharded step when a device held two starts or more (seen with two forced host
+    devices: 3 or 4 starts hung, 2 ran); such a fit is refused with a clear error
+    (before anything is compiled), and one start per device goes on to the mesh."""
     from types import SimpleNamespace
+
+    class Reached(Exception):
+        pass
+
+    def mesh(*args):
+        raise Reached
 
     two = SimpleNamespace(devices=np.array(jax.devices()[:1] * 2))
     monkeypatch.setattr(rtjax, "device_mesh", lambda devices: two)
+    monkeypatch.setattr(fitting.multistart, "Mesh", mesh)
     target = np.zeros((truth.structure.height, truth.structure.width, 3))
     for camera in ({"photo": True}, {"nuisance": ("camera",)}):
-        with pytest.raises(fitting.FitError, match="several CPU devices hangs"):
+        with pytest.raises(fitting.FitError, match="3 starts over 2 CPU devices hangs .* at most one start per device"):
+            fitting.fit_multistart(truth, target, starts=3, devices=2, **camera)
+        with pytest.raises(Reached):
             fitting.fit_multistart(truth, target, starts=2, devices=2, **camera)
