@@ -66,6 +66,9 @@ FLAT_SHARE = 0.5
 #: ...and below the start geometry's (with the fitted appearance) once any centre moved
 #: more than this many pixel footprints.
 MOVED_PX = 0.5
+#: A centre's σ is along the view (`undetermined`) when σ along the view is at least this
+#: share of σ along its worst direction.
+ALONG_VIEW = 0.9
 #: How close to an end of its range (as a share of the range) a parameter counts as at it.
 AT_BOUND = 0.01
 
@@ -181,11 +184,26 @@ def judge(problem, steps, y: dict, end: tuple[float, object] | None = None) -> V
                       f"{rms['end']:.3g} levels is not below the start geometry's {rms['start']:.3g}")
     loose = [s for s in spheres if not CONFIDENCE * s["sigma_total_px"] <= s["limit_px"]]
     if loose:
-        causes.append("undetermined: " + ", ".join(
-            f"sphere {s['index']} moved {s['moved_px']:.2f} px but is determined only to ±{s['sigma_total_px']:.3g} px "
-            f"(σ {s['sigma_px']:.3g}, bias {s['bias_px']:.3g}; {CONFIDENCE:g}σ over the goal of {s['limit_px']:g})"
-            for s in loose))
+        causes.append(undetermined(loose))
     return Verdict(ok=not causes, causes=causes, losses=losses, spheres=spheres, bounds=bounds)
+
+
+def undetermined(loose: list[dict]) -> str:
+    """The verdict's cause for spheres (`uncertainty`'s entries) not determined to their
+    goal: each one's move, σ and bias, and whether its worst direction is along the view
+    (`ALONG_VIEW`: a centre's outline fixes it across the view, and only its size and
+    what it touches or shades fix its depth); if every one's is, the message ends by
+    saying so."""
+    def along(s):
+        return s["sigma_depth_px"] >= ALONG_VIEW * s["sigma_px"]
+
+    text = "undetermined: " + ", ".join(
+        f"sphere {s['index']} moved {s['moved_px']:.2f} px but is determined only to ±{s['sigma_total_px']:.3g} px "
+        f"(σ {s['sigma_px']:.3g}{' along the view' if along(s) else ''}, bias {s['bias_px']:.3g}; "
+        f"{CONFIDENCE:g}σ over the goal of {s['limit_px']:g})" for s in loose)
+    if all(along(s) for s in loose):
+        text += "; what the photo leaves open is depth along the view (across it the outlines fix a centre far better)"
+    return text
 
 
 def uncertainty(problem, jac: np.ndarray, r: np.ndarray, y: dict) -> list[dict]:

@@ -19,7 +19,7 @@ from conftest import ROOT, quick_env, scene_from_text, truth_deck
 import fitting
 import rtjax
 from fitting.photo import RANGES, Photo
-from fitting.verdict import CONFIDENCE, bounds_reached, footprints
+from fitting.verdict import CONFIDENCE, bounds_reached, footprints, undetermined
 
 #: compile-bound fits and tolerance checks: XLA's quick build (`conftest.quick_build`)
 pytestmark = pytest.mark.usefixtures("quick_build")
@@ -93,6 +93,23 @@ def test_footprints_are_distance_times_pixel_angle(truth):
     np.testing.assert_allclose(footprints(p, truth.structure.width), d * angle, rtol=1e-6)
 
 
+def test_undetermined_says_which_spheres_are_open_along_the_view():
+    """The verdict's cause names each sphere's move, σ and bias, marks those whose worst
+    direction is along the view, and says that depth is what is open only when it is
+    so for every one."""
+    def sphere(index, sigma, depth):
+        return {"index": index, "moved_px": 2.0, "sigma_total_px": sigma, "sigma_px": sigma, "sigma_depth_px": depth,
+                "bias_px": 0.0, "limit_px": 1.0}
+
+    deep, wide = sphere(0, 1.0, 0.95), sphere(3, 2.0, 0.5)
+    text = undetermined([deep, wide])
+    assert text == ("undetermined: sphere 0 moved 2.00 px but is determined only to ±1 px (σ 1 along the view, bias 0; "
+                    "3σ over the goal of 1), sphere 3 moved 2.00 px but is determined only to ±2 px (σ 2, bias 0; "
+                    "3σ over the goal of 1)")
+    assert undetermined([deep]).endswith("; what the photo leaves open is depth along the view (across it the "
+                                         "outlines fix a centre far better)")
+
+
 @pytest.mark.slow
 def test_photo_fit_through_another_camera(tmp_path):
     """A JPEG of the truth, 96 pixels wide, rendered in linear light as a photo's
@@ -127,6 +144,8 @@ def test_photo_fit_through_another_camera(tmp_path):
     v = res.verdict
     assert res.converged and not res.ok and not v.bounds
     assert len(v.causes) == 1 and v.causes[0].startswith("undetermined: sphere 0"), v.message
+    assert v.causes[0].endswith("what the photo leaves open is depth along the view (across it the outlines fix a "
+                                "centre far better)"), v.message
     assert [s["index"] for s in v.spheres] == [0, 1]
     for s, a in zip(v.spheres, along):
         assert CONFIDENCE * s["sigma_px"] > 1 and s["sigma_depth_px"] > 0.99 * s["sigma_px"] and len(s["sigma"]) == 3, s
