@@ -9,7 +9,8 @@ the solver's step `equinox.filter_vmap`-ped over the starts (on an accelerator) 
 start after start by `lax.map` inside the call (on a CPU, where that is faster). With
 `devices`, the starts are laid out over a `jax.sharding.Mesh` with a `NamedSharding`
 that splits the starts axis (K padded to a multiple of the device count), so that XLA's
-partitioner gives each device its own starts. Each start keeps its own best point,
+partitioner gives each device its own starts (on CPUs, a row of them that it takes
+one after another by `lax.map`). Each start keeps its own best point,
 stopping rules and result; a start that has stopped is frozen while the others go on.
 """
 
@@ -43,16 +44,15 @@ MODES = ("auto", "vmap", "map")
 
 def perturbed_starts(y0: dict, starts: int, spread: float, seed: int) -> dict:
     """y0 and K − 1 copies moved by N(0, spread²) in every free coordinate, stacked
-    (K, ...). In the solver's coordinates a unit is: the scene's median radius for
-    centres, eye and reference point; a logit for colours, ks, kt, ke; a factor e for
-    radii, exponents, n − 1; about a radian for light directions."""
+    (K, ...), drawn start after start, so that the first k starts are the same whatever
+    K. In the solver's coordinates a unit is: the scene's median radius for centres,
+    eye and reference point; a logit for colours, ks, kt, ke; a factor e for radii,
+    exponents, n − 1; about a radian for light directions."""
     rng = np.random.default_rng(seed)
     leaves, tree = jax.tree.flatten(y0)
-    out = []
-    for a in leaves:
-        a = np.asarray(a)
-        noise = rng.normal(0.0, spread, (starts - 1,) + a.shape)
-        out.append(jnp.asarray(np.concatenate([a[None], a[None] + noise]), a.dtype))
+    arrays = [np.asarray(a) for a in leaves]
+    noise = [[rng.normal(0.0, spread, a.shape) for a in arrays] for _ in range(starts - 1)]
+    out = [jnp.asarray(np.stack([a] + [a + moved[i] for moved in noise]), a.dtype) for i, a in enumerate(arrays)]
     return jax.tree.unflatten(tree, out)
 
 
@@ -85,9 +85,10 @@ class Parallel:
 
     - `stepper`: the one-start `Stepper`.
     - `mesh`: None (one device), or a mesh whose one axis (`AXIS`) the starts are laid
-      out over (vmapped).
-    - `mode`: on one device, "map" (`lax.map`: one start after another, each keeping the
-      renderer's run-time skipping of finished ray segments) or "vmap" (all at once).
+      out over (vmapped across the devices).
+    - `mode`: each device's own starts: "map" (`lax.map`: one start after another, on
+      one device each keeping the renderer's run-time skipping of finished ray
+      segments) or "vmap" (all at once).
     - `starts`: K; padded to a multiple of the device count with copies that never step.
     """
 
@@ -152,14 +153,28 @@ class Parallel:
         """fn(batched..., shared...) over the starts of `batched` (non-array parts, the
         solver's static state, pass through). With a mesh, every array with a starts
         axis is laid out over the devices (`NamedSharding`, the starts axis split), so
-        that XLA's partitioner gives each device its own starts. (Not `shard_map`: the
-        solver's state records its arrays' structures, and a manual region adds a
-        sharding to some of them and not to others.)"""
-        if self.mesh is not None:
-            batched = self._spread(batched)
-        if self.mode == "vmap" or self.mesh is not None:
-            out = eqx.filter_vmap(lambda b: fn(*b, *shared))(batched)
-            return out if self.mesh is None else self._spread(out)
+        that XLA's partitioner gives each device its own starts; in "map" mode as rows
+        of (devices, starts per device), vmapped over the devices, each device mapping
+        over its row. (Not `shard_map`: the solver's state records its arrays'
+        structures, and a manual region adds a sharding to some of them and not to
+        others.)"""
+        if self.mesh is None:
+            return self._map(fn, batched, shared) if self.mode == "map" else \
+                eqx.filter_vmap(lambda b: fn(*b, *shared))(batched)
+        if self.mode != "map":
+            out = eqx.filter_vmap(lambda b: fn(*b, *shared))(self._spread(batched))
+            return self._spread(out)
+
+        def reshape(tree, shape):
+            return jax.tree.map(lambda a: a.reshape(shape(a)) if eqx.is_array(a) else a, tree)
+
+        rows = self._spread(reshape(batched, lambda a: (self.devices, -1) + a.shape[1:]))
+        out = eqx.filter_vmap(lambda b: self._map(fn, b, shared))(rows)
+        return self._spread(reshape(out, lambda a: (-1,) + a.shape[2:]))
+
+    @staticmethod
+    def _map(fn, batched, shared):
+        """fn over the leading axis of `batched` by `lax.map`, one start after another."""
         dyn, static = eqx.partition(batched, eqx.is_array)
         box = []
 
@@ -220,9 +235,10 @@ def fit_multistart(scene: rtjax.Scene, target, free: str | Sequence[str] = "cent
       laid out over them (`rtjax.device_mesh`), each device stepping its own.
     - `mode`: one device's starts within its one compiled call per iteration: "vmap"
       (all at once), "map" (one after another, `lax.map`), or "auto" (default: "map" on
-      a single CPU, where `vmap` turns the renderer's run-time skipping of finished ray
-      segments into selects; "vmap" otherwise). With several devices the starts are
-      vmapped.
+      CPUs, where `vmap` turns the renderer's run-time skipping of finished ray
+      segments into selects, and where a camera model's step with two or more starts
+      vmapped on each of several devices hung; "vmap" otherwise). Across several
+      devices the starts are vmapped, each device taking its own.
     - `callback`: called after every iteration (each steps every start that has not
       stopped) with the history row of the start with the lowest loss so far, plus
       `start` (which one) and `active` (how many starts are still going).
@@ -241,17 +257,18 @@ def fit_multistart(scene: rtjax.Scene, target, free: str | Sequence[str] = "cent
         mesh = rtjax.device_mesh(devices)
     except rtjax.RtjaxError as e:
         raise FitError(str(e)) from None
-    if mesh is not None and 1 < mesh.devices.size < starts and (options.photo or options.nuisance) \
-            and jax.devices()[0].platform == "cpu":
-        raise FitError(f"a camera model (--photo, --nuisance) with {starts} starts over {mesh.devices.size} CPU devices "
-                       "hangs in XLA's sharded step when a device holds two starts or more (a known issue): give "
-                       "at most one start per device, or use one device")
+    cpu = jax.devices()[0].platform == "cpu"
+    if mode == "auto":
+        mode = "map" if cpu else "vmap"
+    if mesh is not None and 1 < mesh.devices.size < starts and mode == "vmap" and cpu \
+            and (options.photo or options.nuisance):
+        raise FitError(f"a camera model (--photo, --nuisance) with {starts} starts vmapped over {mesh.devices.size} CPU "
+                       "devices hangs in XLA's sharded step when a device holds two starts or more (a known issue): "
+                       "use mode 'map' (the default on CPUs), at most one start per device, or one device")
     if mesh is not None:
         mesh = Mesh(mesh.devices, (AXIS,))
     started = time.perf_counter()
     problem = Problem.build(scene, target, free, spheres, options)
-    if mode == "auto":
-        mode = "map" if mesh is None and jax.devices()[0].platform == "cpu" else "vmap"
     stepper = Parallel(Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac), mesh, mode,
                        starts)
     ys = stepper.pad(perturbed_starts(problem.y0, starts, spread, seed))

@@ -87,8 +87,8 @@ def check_render(outdir: str) -> dict:
 
 
 def check_fit(path: str) -> dict:
-    """A 4-start fit with its starts over 4 devices; the test compares it with the same
-    fit on one device (vmap)."""
+    """A multi-start fit (the spec's options) with its starts over 4 devices; the test
+    compares it with the same fit on one device."""
     jax.config.update("jax_enable_x64", True)  # as the tests' own process (conftest.py)
     import fitting
 

@@ -1,12 +1,15 @@
 """Multi-start fitting (`fitting.fit_multistart`): K perturbed starts stepped together
-(vmapped on one device, sharded over four), the best kept, the converged ones counted.
+(one after another on one CPU device, sharded over four), the best kept, the converged
+ones counted.
 
-One fit in-process (3 starts, one device) and the same fit with 4 starts over 4 forced
-host devices in a subprocess (`tests/multidevice.py fit`), started in the background as
-soon as the session has collected a test that needs it (conftest.py's background work),
-so it runs while the tests before these do; starts 0-2 are the same in both (start 0 as
-given, then the same seeded draws), so the sharded solves must agree with the vmapped
-ones. Both compile with XLA's quick build (`conftest.quick_build`, `quick_env`): the
+One fit in-process (3 starts, one device) and the same fit with 6 starts over 4 forced
+host devices in a subprocess (`tests/multidevice.py fit`: padded to 8, two on each
+device, which a fit with a camera parameter hung on before each device mapped over its
+own), started in the background as soon as the session has collected a test that needs
+it (conftest.py's background work), so it runs while the tests before these do; starts
+0-2 are the same in both (start 0 as given, then the same seeded draws), so the
+sharded solves must agree with the one device's. Both fit a camera gain besides the
+centres. Both compile with XLA's quick build (`conftest.quick_build`, `quick_env`): the
 checks are tolerances and the compile is most of their cost.
 """
 
@@ -32,7 +35,8 @@ pytestmark = pytest.mark.usefixtures("quick_build")
 TRUTH_WIDTH = 48  # conftest.py's `truth` fixture, at this width
 DECK = truth_deck(TRUTH_WIDTH)
 OFFSET = [[1.5, -1.0, 1.2], [-1.3, 1.0, -1.4]]
-OPTIONS = {"seed": 3, "spread": 0.4, "max_steps": 10, "polish": None}
+OPTIONS = {"seed": 3, "spread": 0.4, "max_steps": 10, "polish": None, "nuisance": ["gain"]}
+STARTS_ON_FOUR = 6  # the 4-device fit's starts: two on each device (padded to 8)
 
 
 BACKGROUND_FOR = "runs"  # conftest.py: the 4-device fit starts once a test that needs it is collected
@@ -44,7 +48,7 @@ def _four_device_fit(job: Job) -> dict:
     try:
         spec = os.path.join(folder, "spec.json")
         with open(spec, "w") as f:
-            json.dump({"deck": DECK, "offset": OFFSET, "options": dict(OPTIONS, starts=4)}, f)
+            json.dump({"deck": DECK, "offset": OFFSET, "options": dict(OPTIONS, starts=STARTS_ON_FOUR)}, f)
         return collect(launch("fit", spec, popen=job.popen, env=quick_env()))
     finally:
         shutil.rmtree(folder, ignore_errors=True)
@@ -84,6 +88,11 @@ def test_starts_are_the_given_one_and_seeded_perturbations(runs):
     assert not np.allclose(begun[1], begun[2])
     again = fitting.perturbed_starts({"c": np.zeros((2, 3), np.float32)}, 3, 0.4, 3)["c"]
     assert again.shape == (3, 2, 3) and not np.any(np.asarray(again[0]))
+    # two leaves: the first starts are the same whatever the count
+    y0 = {"a": np.zeros(2), "b": np.ones((2, 3))}
+    three, five = (fitting.perturbed_starts(y0, k, 0.4, 3) for k in (3, 5))
+    for name in y0:
+        np.testing.assert_array_equal(five[name][:3], three[name])
 
 
 @pytest.mark.slow
@@ -107,7 +116,7 @@ def test_best_start_kept_and_converged_counted(runs, truth):
 @pytest.mark.slow
 def test_sharded_starts_agree_with_one_device(runs):
     one, four, _, _ = runs
-    assert four["devices"] == 4 and len(four["losses"]) == 4
+    assert four["devices"] == 4 and len(four["losses"]) == STARTS_ON_FOUR
     assert four["results"][:3] == one.results
     np.testing.assert_allclose(four["losses"][:3], one.losses, rtol=1e-3, atol=1e-9)
     assert sum(r == "successful" for r in four["results"]) == four["converged"]
@@ -153,11 +162,12 @@ def test_bad_starts_and_devices_are_errors(truth):
 
 
 
-def test_camera_model_over_several_cpu_devices_is_refused(truth, monkeypatch):
+def test_camera_model_vmapped_over_several_cpu_devices_is_refused(truth, monkeypatch):
     """A photo or camera-nuisance multi-start fit over several CPU devices hung in the
-    sharded step when a device held two starts or more (seen with two forced host
-    devices: 3 or 4 starts hung, 2 ran); such a fit is refused with a clear error
-    (before anything is compiled), and one start per device goes on to the mesh."""
+    sharded step when a device vmapped two starts or more (seen with two forced host
+    devices: 3 or 4 starts hung, 2 ran); asked for (`mode="vmap"`), such a fit is
+    refused with a clear error before anything is compiled; the default on CPUs (each
+    device maps over its starts, `tests/multidevice.py fit` runs one) goes on to the mesh."""
     from types import SimpleNamespace
 
     class Reached(Exception):
@@ -171,7 +181,8 @@ def test_camera_model_over_several_cpu_devices_is_refused(truth, monkeypatch):
     monkeypatch.setattr(fitting.multistart, "Mesh", mesh)
     target = np.zeros((truth.structure.height, truth.structure.width, 3))
     for camera in ({"photo": True}, {"nuisance": ("camera",)}):
-        with pytest.raises(fitting.FitError, match="3 starts over 2 CPU devices hangs .* at most one start per device"):
-            fitting.fit_multistart(truth, target, starts=3, devices=2, **camera)
-        with pytest.raises(Reached):
-            fitting.fit_multistart(truth, target, starts=2, devices=2, **camera)
+        with pytest.raises(fitting.FitError, match="3 starts vmapped over 2 CPU devices hangs .* use mode 'map'"):
+            fitting.fit_multistart(truth, target, starts=3, devices=2, mode="vmap", **camera)
+        for ok in ({"starts": 3}, {"starts": 2, "mode": "vmap"}):
+            with pytest.raises(Reached):
+                fitting.fit_multistart(truth, target, devices=2, **ok, **camera)
