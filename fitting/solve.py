@@ -299,7 +299,8 @@ def fit_starts(problem: Problem, stepper: Steps, ys, begun: Sequence[rtjax.Scene
                 histories[k].append(row(k))
             if callback is not None:
                 lead = int(np.argmin(np.where(real, book.best, math.inf)))
-                shown = histories[lead][-1] if active[lead] else row(lead)
+                # a lead that has stopped took no step: its best loss, not the stopped step's inf
+                shown = histories[lead][-1] if active[lead] else dict(row(lead), loss=float(book.best[lead]))
                 if several:
                     shown = dict(shown, start=lead, active=int((~book.stopped[:count]).sum()))
                 callback(shown)

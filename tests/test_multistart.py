@@ -109,7 +109,7 @@ def test_best_start_kept_and_converged_counted(runs, truth):
     assert err[:, [0, 2]].max() < 0.3, one.table()
     # one row per batched iteration, for the leading start, with how many starts go on
     assert rows and [r["step"] for r in rows] == list(range(1, len(rows) + 1))
-    assert all(0 <= r["active"] <= 3 and 0 <= r["start"] < 3 for r in rows)
+    assert all(0 <= r["active"] <= 3 and 0 <= r["start"] < 3 and np.isfinite(r["loss"]) for r in rows)
     assert one.best.history and one.best.history[-1]["best_loss"] == pytest.approx(one.loss)
 
 
