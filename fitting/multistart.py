@@ -232,7 +232,9 @@ def fit_multistart(scene: rtjax.Scene, target, free: str | Sequence[str] = "cent
     - `starts`: K; start 0 is `scene` as given, the others are perturbed by
       N(0, spread²) in the solver's coordinates (`perturbed_starts`), drawn from `seed`.
     - `devices`: None (one device), an int, "all", or a list of devices: the starts are
-      laid out over them (`rtjax.device_mesh`), each device stepping its own.
+      laid out over them (`rtjax.device_mesh`), each device stepping its own (not
+      several CPU devices for a fit with a whole-image level, a photo or a fitted blur:
+      refused, for that level ran minutes per step there).
     - `mode`: one device's starts within its one compiled call per iteration: "vmap"
       (all at once), "map" (one after another, `lax.map`), or "auto" (default: "map" on
       CPUs, where `vmap` turns the renderer's run-time skipping of finished ray
@@ -265,10 +267,14 @@ def fit_multistart(scene: rtjax.Scene, target, free: str | Sequence[str] = "cent
         raise FitError(f"a camera model (--photo, --nuisance) with {starts} starts vmapped over {mesh.devices.size} CPU "
                        "devices hangs in XLA's sharded step when a device holds two starts or more (a known issue): "
                        "use mode 'map' (the default on CPUs), at most one start per device, or one device")
-    if mesh is not None:
-        mesh = Mesh(mesh.devices, (AXIS,))
     started = time.perf_counter()
     problem = Problem.build(scene, target, free, spheres, options)
+    if mesh is not None and mesh.devices.size > 1 and cpu and any(level.whole for level in problem.pyramid):
+        raise FitError("a fit whose full-size level renders the whole image (--photo, or a fitted blur) with its "
+                       f"starts over {mesh.devices.size} CPU devices ran minutes per step there (XLA's sharded "
+                       "whole-image step): use one device")
+    if mesh is not None:
+        mesh = Mesh(mesh.devices, (AXIS,))
     stepper = Parallel(Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac), mesh, mode,
                        starts)
     ys = stepper.pad(perturbed_starts(problem.y0, starts, spread, seed))

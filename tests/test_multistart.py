@@ -162,12 +162,14 @@ def test_bad_starts_and_devices_are_errors(truth):
 
 
 
-def test_camera_model_vmapped_over_several_cpu_devices_is_refused(truth, monkeypatch):
-    """A photo or camera-nuisance multi-start fit over several CPU devices hung in the
-    sharded step when a device vmapped two starts or more (seen with two forced host
-    devices: 3 or 4 starts hung, 2 ran); asked for (`mode="vmap"`), such a fit is
-    refused with a clear error before anything is compiled; the default on CPUs (each
-    device maps over its starts, `tests/multidevice.py fit` runs one) goes on to the mesh."""
+def test_camera_model_over_several_cpu_devices_is_refused_where_it_stalls(truth, monkeypatch):
+    """Over several CPU devices, a camera-model multi-start fit hung when a device
+    vmapped two starts or more (seen with two forced host devices: 3 or 4 starts hung, 2
+    ran): `mode="vmap"` there is refused; and a fit whose full-size level renders the
+    whole image (a photo, a fitted blur) ran minutes per step on that level: refused
+    too. Both with a clear error before anything is compiled; a camera gain with the
+    default mode (each device maps over its starts, `tests/multidevice.py fit` runs
+    one) goes on to the mesh."""
     from types import SimpleNamespace
 
     class Reached(Exception):
@@ -180,9 +182,11 @@ def test_camera_model_vmapped_over_several_cpu_devices_is_refused(truth, monkeyp
     monkeypatch.setattr(rtjax, "device_mesh", lambda devices: two)
     monkeypatch.setattr(fitting.multistart, "Mesh", mesh)
     target = np.zeros((truth.structure.height, truth.structure.width, 3))
-    for camera in ({"photo": True}, {"nuisance": ("camera",)}):
-        with pytest.raises(fitting.FitError, match="3 starts vmapped over 2 CPU devices hangs .* use mode 'map'"):
-            fitting.fit_multistart(truth, target, starts=3, devices=2, mode="vmap", **camera)
-        for ok in ({"starts": 3}, {"starts": 2, "mode": "vmap"}):
-            with pytest.raises(Reached):
-                fitting.fit_multistart(truth, target, devices=2, **ok, **camera)
+    with pytest.raises(fitting.FitError, match="3 starts vmapped over 2 CPU devices hangs .* use mode 'map'"):
+        fitting.fit_multistart(truth, target, starts=3, devices=2, mode="vmap", nuisance=("gain",))
+    for camera in ({"photo": True}, {"nuisance": ("camera",)}, {"nuisance": ("blur",)}):
+        with pytest.raises(fitting.FitError, match="renders the whole image .* over 2 CPU devices ran minutes"):
+            fitting.fit_multistart(truth, target, starts=2, devices=2, **camera)
+    for ok in ({"starts": 3}, {"starts": 2, "mode": "vmap"}):
+        with pytest.raises(Reached):
+            fitting.fit_multistart(truth, target, devices=2, nuisance=("gain",), **ok)
