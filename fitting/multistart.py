@@ -158,19 +158,19 @@ class Parallel:
         over its row. (Not `shard_map`: the solver's state records its arrays'
         structures, and a manual region adds a sharding to some of them and not to
         others.)"""
+        def each(b):  # one device's starts, in the mode's way
+            return self._map(fn, b, shared) if self.mode == "map" else eqx.filter_vmap(lambda b: fn(*b, *shared))(b)
+
         if self.mesh is None:
-            return self._map(fn, batched, shared) if self.mode == "map" else \
-                eqx.filter_vmap(lambda b: fn(*b, *shared))(batched)
+            return each(batched)
         if self.mode != "map":
-            out = eqx.filter_vmap(lambda b: fn(*b, *shared))(self._spread(batched))
-            return self._spread(out)
+            return self._spread(each(self._spread(batched)))
 
         def reshape(tree, shape):
             return jax.tree.map(lambda a: a.reshape(shape(a)) if eqx.is_array(a) else a, tree)
 
         rows = self._spread(reshape(batched, lambda a: (self.devices, -1) + a.shape[1:]))
-        out = eqx.filter_vmap(lambda b: self._map(fn, b, shared))(rows)
-        return self._spread(reshape(out, lambda a: (-1,) + a.shape[2:]))
+        return self._spread(reshape(eqx.filter_vmap(each)(rows), lambda a: (-1,) + a.shape[2:]))
 
     @staticmethod
     def _map(fn, batched, shared):
