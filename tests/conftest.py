@@ -66,6 +66,14 @@ def quick_xla(clear: bool = False):
             jax.clear_caches()
 
 
+def linearised(f, p, tangent, cotangent):
+    """f(p), J·t and Jᵀ·c from one linearisation (the JVP rules' tangent equations, then
+    their transpose: what `jax.vjp` does), so that one program holds both modes rather
+    than two programs each tracing the render."""
+    out, linear = jax.linearize(f, p)
+    return out, linear(tangent), jax.linear_transpose(linear, p)(cotangent)[0]
+
+
 @pytest.fixture(scope="module")
 def quick_build():
     """`quick_xla` over a whole test module, its caches cleared after it: for modules of

@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import quick_xla
+from conftest import linearised, quick_xla
 
 import rtjax
 
@@ -41,17 +41,11 @@ def deck(body: str, camera: str = "eyep 0 -50 0\nrefp 0 0 0\nvang 40 30\n") -> r
 def _image_jvp_vjp(params, tangent, cotangent, structure, depth, edges):
     """The image, J·t and Jᵀ·c for random t and c. A NaN or Inf anywhere in the Jacobian
     reaches J·t or Jᵀ·c (random directions do not cancel it), so these two products
-    check every entry in both modes at the cost of one forward and one reverse pass.
-    Both come from one linearisation (the JVP rules' tangent equations, then their
-    transpose: what `jax.vjp` does), so one program holds both modes rather than two
-    programs each tracing the render. Jitted by structure: the tests that share a
+    check every entry in both modes at the cost of one forward and one reverse pass
+    (`conftest.linearised`: one program). Jitted by structure: the tests that share a
     structure share one compilation."""
-
-    def f(p):
-        return rtjax.render(rtjax.Scene(structure, p), depth=depth, edges=edges)
-
-    image, linear = jax.linearize(f, params)
-    return image, linear(tangent), jax.linear_transpose(linear, params)(cotangent)[0]
+    return linearised(lambda p: rtjax.render(rtjax.Scene(structure, p), depth=depth, edges=edges),
+                      params, tangent, cotangent)
 
 
 def assert_finite_everywhere(scene: rtjax.Scene, depth: int | None = None, edges: float = 0.0):
