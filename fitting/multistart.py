@@ -99,7 +99,7 @@ class Parallel:
         self._init = eqx.filter_jit(self._initial)
         self._step = eqx.filter_jit(self._advance)
         self._keep = eqx.filter_jit(_select)
-        self.ahead = None  # compiling the whole-image level's step (`compile_ahead`)
+        self.ahead = None  # set by `compile_ahead`
 
     def pad(self, ys):
         """Starts `ys` (K, ...) padded to `size` with copies of the last."""
@@ -110,7 +110,7 @@ class Parallel:
 
     def compile_ahead(self, ys, pyramid):
         """`solvers.compile_ahead` of the step of the starts `ys` (padded) over the levels
-        `pyramid`; `init` waits for its thread on a whole-image level."""
+        `pyramid` (its thread: `ahead`)."""
         active = jnp.ones(self.size, bool)
 
         def lower(samples):
@@ -120,8 +120,6 @@ class Parallel:
         self.ahead = compile_ahead(lower, pyramid)
 
     def init(self, ys, samples):
-        if self.ahead is not None and samples.whole:
-            self.ahead.join()  # its step compiled once, not again beside it
         return self._init(ys, self.stepper.args(samples))
 
     def step(self, ys, states, samples, active):
@@ -283,8 +281,6 @@ def fit_multistart(scene: rtjax.Scene, target, free: str | Sequence[str] = "cent
     begun = [rtjax.Scene(structure, problem.selection.params(jax.tree.map(lambda a: a[k], ys)["scene"]))
              for k in range(starts)]
     result = fit_starts(problem, stepper, ys, begun, options, callback, started=started, several=True)
-    if stepper.ahead is not None:
-        stepper.ahead.join()
     if options.photo or options.nuisance:  # judged with the starts' own compiled step
         result.best.verdict = judge(problem, stepper, result.best.y)
     return result

@@ -179,6 +179,7 @@ class Steps(Protocol):
 
     size: int  # starts stepped, padding included
     devices: int
+    ahead: threading.Thread | None  # compiling the whole-image level's step (`solvers.compile_ahead`)
 
     def init(self, ys, samples):
         """The solver states of starts `ys` on a level."""
@@ -208,12 +209,10 @@ class Single:
 
     def __init__(self, stepper: Stepper, ahead: threading.Thread | None = None):
         self.stepper = stepper
-        self.ahead = ahead  # compiling the whole-image level's step (`Stepper.compile_ahead`)
+        self.ahead = ahead
         self.last = None  # the last step's (y, state, loss, samples)
 
     def init(self, y, samples):
-        if self.ahead is not None and samples.whole:
-            self.ahead.join()  # its step compiled once, not again beside it
         return self.stepper.init(y, samples)
 
     def step(self, y, state, samples, active):
@@ -261,6 +260,9 @@ def fit_starts(problem: Problem, stepper: Steps, ys, begun: Sequence[rtjax.Scene
       and how many are still going (`active`).
     - `started`: `time.perf_counter()` when the fit began (its set-up included).
 
+    The background compile of the whole-image level's step (`stepper.ahead`) is joined
+    before that level begins, and in any case before this returns.
+
     **Returns:** a `MultiStartResult` (for one start, its `best` is the fit).
     """
     count = len(begun)
@@ -277,6 +279,8 @@ def fit_starts(problem: Problem, stepper: Steps, ys, begun: Sequence[rtjax.Scene
             continue
         # the first step evaluates the start and returns it with its loss (optimistix
         # accepts a first step unconditionally), so no separate evaluation is needed
+        if samples.whole and stepper.ahead is not None:
+            stepper.ahead.join()  # its step compiled once, not again beside it
         states = stepper.init(ys, samples)
         best_ys = ys
         book = LevelBook(stepper.size, not full_size, until, active=real)
@@ -309,6 +313,8 @@ def fit_starts(problem: Problem, stepper: Steps, ys, begun: Sequence[rtjax.Scene
         book.finish()
         ys = best_ys
         steps += n
+    if stepper.ahead is not None:
+        stepper.ahead.join()  # where the whole-image level was skipped: not left compiling
 
     results = book.results
     if out_of_steps:
@@ -381,8 +387,6 @@ def fit(scene: rtjax.Scene | Sequence[rtjax.Scene], target, free: str | Sequence
     stepper = Stepper(problem.objective, options.solver, options.rtol, options.atol, problem.jac)
     single = Single(stepper, stepper.compile_ahead(problem.y0, problem.pyramid))
     result = fit_starts(problem, single, problem.y0, [problem.scene], options, callback, started=started).best
-    if single.ahead is not None:
-        single.ahead.join()
     if "textures" in problem.selection.families:
         result.texels = coverage(views, options.mask, options.depth, smoothed=bool(options.smooth))
     if options.photo or options.nuisance:

@@ -110,8 +110,12 @@ def _edge_image_and_jacobian(params, k, structure, depth, width):
 
 @functools.lru_cache(maxsize=None)
 def edge_mode(name: str, k: int):
+    """The silhouette-aware image and its Jacobian (4, H, W, 3) for sphere k, compiled
+    under `quick_xla` (tolerance checks against yardsticks; the compile is what costs,
+    and `_edge_image_and_jacobian` is called nowhere else)."""
     s = scene(name)
-    image, jacobian = _edge_image_and_jacobian(s.params, k, s.structure, DECKS[name][1], WIDTH)
+    with quick_xla():
+        image, jacobian = _edge_image_and_jacobian(s.params, k, s.structure, DECKS[name][1], WIDTH)
     return np.asarray(image), np.moveaxis(np.asarray(jacobian), -1, 0)
 
 
