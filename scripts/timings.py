@@ -67,14 +67,16 @@ def main() -> None:
         base = base or t_f
         ((c_j, t_j),) = timed([(jac, (scene.params.centers,))], runs=max(1, args.runs // 2))
         mode = "silhouette-aware (edges=1)" if edges else "plain"
-        memory = []
+        rows.append((mode, c_f, t_f, c_g, t_g, c_j, t_j, []))
+    # memory analysed after every timing, so that no other program's compile comes between
+    # the two modes' timings
+    for edges, row in zip((0.0, 1.0), rows):
         for depth in args.depths:
-            def loss(p, depth=depth):
+            def loss(p, depth=depth, edges=edges):
                 return jnp.mean(rtjax.render(rtjax.Scene(s, p), edges=edges, depth=depth))
 
             analysis = jax.jit(jax.grad(loss)).lower(scene.params).compile().memory_analysis()
-            memory.append((depth, analysis.temp_size_in_bytes))
-        rows.append((mode, c_f, t_f, c_g, t_g, c_j, t_j, memory))
+            row[-1].append((depth, analysis.temp_size_in_bytes))
     print(f"{s.width}x{s.height}, depth {s.default_depth}, float32, median of {args.runs} runs after compile, {jax.devices()[0].platform}")
     print(f"{'mode':28s} {'forward':>18s} {'reverse grad':>22s} {'jacfwd (24 centres)':>24s}")
     for mode, c_f, t_f, c_g, t_g, c_j, t_j, _ in rows:
