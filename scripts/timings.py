@@ -53,7 +53,8 @@ def main() -> None:
     s = scene.structure
     rows = []
     base = None
-    for edges in (0.0, 1.0):
+    widths = (0.0, 1.0)  # plain, then the silhouette-aware mode
+    for edges in widths:
         def image(p):
             return rtjax.render(rtjax.Scene(s, p), edges=edges)
 
@@ -70,7 +71,7 @@ def main() -> None:
         rows.append((mode, c_f, t_f, c_g, t_g, c_j, t_j, []))
     # memory analysed after every timing, so that no other program's compile comes between
     # the two modes' timings
-    for edges, row in zip((0.0, 1.0), rows):
+    for edges, row in zip(widths, rows):
         for depth in args.depths:
             def loss(p, depth=depth, edges=edges):
                 return jnp.mean(rtjax.render(rtjax.Scene(s, p), edges=edges, depth=depth))
