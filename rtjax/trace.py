@@ -22,6 +22,7 @@ import functools
 from typing import Literal, NamedTuple
 
 import jax
+import jax.extend
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int, UInt
 
@@ -525,9 +526,7 @@ def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: i
         return _edge_pass(s, p, rays, depth, width, BOX, capacity, jnp.where(r == 0, n, live), subdivided=True)
 
     def body(chosen, r):
-        shapes = jax.eval_shape(one, r, chosen)
-        out = jax.lax.cond((r == 0) | (chosen.count > (r - 1) * group), jax.checkpoint(one, prevent_cse=False),
-                           lambda r, c: jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), shapes), r, chosen)
+        out = checkpointed_or_zeros((r == 0) | (chosen.count > (r - 1) * group), one, r, chosen, prevent_cse=False)
         picked = pack(out.subdivided, capacity)
         chosen = jax.tree_util.tree_map(lambda a, b: jnp.where(r == 0, a, b), picked, chosen)
         return chosen, out.samples
@@ -537,6 +536,24 @@ def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: i
     boxes = samples.blended[1:, :, :4 * group].reshape(rounds, 3, group, 4).mean(axis=-1)
     boxes = jnp.moveaxis(boxes, 0, 1).reshape(3, rounds * group)[:, :capacity]
     return pixels._replace(blended=chosen.scatter(pixels.blended, boxes))
+
+
+def checkpointed_or_zeros(run, fn, *args, prevent_cse: bool = True):
+    """`fn(*args)` when `run` (traced), checkpointed (reverse mode recomputes it rather
+    than storing its intermediates), else zeros shaped as its outputs, chosen at run time
+    (`lax.cond`): a skipped part of the work costs nothing. fn is traced once, for both
+    its program and its outputs' shapes (`jax.eval_shape` would trace it again: a third
+    of the silhouette-aware forward's trace)."""
+    program, shapes = jax.make_jaxpr(fn, return_shape=True)(*args)
+    treedef = jax.tree_util.tree_structure(shapes)
+
+    def traced(*a):
+        return jax.tree_util.tree_unflatten(treedef, jax.extend.core.jaxpr_as_fun(program)(*jax.tree_util.tree_leaves(a)))
+
+    def zeros(*a):
+        return jax.tree_util.tree_map(lambda v: jnp.zeros(v.shape, v.dtype), shapes)
+
+    return jax.lax.cond(run, jax.checkpoint(traced, prevent_cse=prevent_cse), zeros, *args)
 
 
 def pad_last(a, size: int):
@@ -567,12 +584,9 @@ def tiled(fn, tile: int, *arrays, count=None):
     if count is None:
         out = jax.lax.map(lambda a: fn(*a), parts)
     else:
-        shapes = jax.eval_shape(fn, *jax.tree_util.tree_map(lambda a: a[0], parts))
-
         def one(ia):
             i, a = ia
-            return jax.lax.cond(i * tile < count, jax.checkpoint(lambda a: fn(*a)),
-                                lambda a: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes), a)
+            return checkpointed_or_zeros(i * tile < count, fn, *a)
 
         out = jax.lax.map(one, (jnp.arange(m), parts))
     return jax.tree_util.tree_map(join, out)
