@@ -542,8 +542,7 @@ def checkpointed_or_zeros(run, fn, *args, prevent_cse: bool = True):
     """`fn(*args)` when `run` (traced), checkpointed (reverse mode recomputes it rather
     than storing its intermediates), else zeros shaped as its outputs, chosen at run time
     (`lax.cond`): a skipped part of the work costs nothing. fn is traced once, for both
-    its program and its outputs' shapes (`jax.eval_shape` would trace it again: a third
-    of the silhouette-aware forward's trace)."""
+    its program and its outputs' shapes (`jax.eval_shape` would trace it a second time)."""
     program, shapes = jax.make_jaxpr(fn, return_shape=True)(*args)
     treedef = jax.tree_util.tree_structure(shapes)
 
