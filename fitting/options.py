@@ -24,7 +24,7 @@ class FitOptions:
     - `max_steps`: iterations in all, across the coarse-to-fine levels.
     - `levels`: the pyramid's widths (`objective.schedule_widths`): None (default: an
       eighth, a quarter and the full width), an int (that many levels halving the width,
-      none below 48 pixels; 1: full size only) or a list of widths. None with textures
+      none below 48 pixels; 1: full size only) or a list of widths (counts and widths ≥ 1). None with textures
       free (and only `texels.APPEARANCE` families): the full-size image, every pixel,
       plain renders (`texels.texel_levels`). Every level but a
       full-size one matched at pixel centres renders as many samples as the coarsest has
@@ -41,7 +41,7 @@ class FitOptions:
       as 0.02), for targets that are themselves antialiased.
     - `depth`: the render's ray depth (None: the scene's).
     - `loss`: 'cauchy' (default, robust), 'huber' or 'l2'; `loss_scale` its scale in
-      levels (levels coarser than the image use `objective.COARSE_SCALE` times it unless
+      levels, > 0 (levels coarser than the image use `objective.COARSE_SCALE` times it unless
       a blur is fitted).
     - `mask`: an image or array whose dark (0) pixels are ignored; None: all count.
     - `nuisance`: camera parameters fitted with the scene for photo-like targets: 'gain'
@@ -91,6 +91,12 @@ class FitOptions:
             raise FitError(f"smooth must be ≥ 0, not {self.smooth}")
         if int(self.max_steps) < 1:
             raise FitError(f"max_steps must be ≥ 1, not {self.max_steps}")
+        if self.levels is not None:
+            given = list(np.ravel(self.levels))
+            if not given or any(int(k) != k or k < 1 for k in given):
+                raise FitError(f"levels must be a count ≥ 1 or widths ≥ 1 pixel, not {self.levels}")
+        if not 0 < self.loss_scale < np.inf:
+            raise FitError(f"loss_scale must be a number of levels > 0, not {self.loss_scale}")
         object.__setattr__(self, "nuisance", nuisance_names(self.nuisance or ()))
         if self.photo and self.nuisance:
             raise FitError("a photo fit has its own camera model (fitting.photo): give photo or nuisance, not both")

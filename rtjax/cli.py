@@ -44,6 +44,16 @@ def _depth(text: str) -> int:
     return _int_at_least(text, 0, "a whole number ≥ 0", "a whole number ≥ 0")
 
 
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, found {text!r}") from None
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a number > 0, found {text}")
+    return value
+
+
 def _edge_width(text: str) -> float:
     try:
         value = float(text)
@@ -247,6 +257,7 @@ def cmd_fit(args) -> int:
     frame = deck.frames[chosen[0]]
     out = args.output or os.path.splitext(os.path.basename(args.deck))[0] + "_fitted.dat"
     outdir, stem = os.path.dirname(out) or ".", os.path.splitext(os.path.basename(out))[0]
+    _check_output_folder(outdir)
     import jax
 
     options = fitting.FitOptions(
@@ -284,14 +295,31 @@ def cmd_fit(args) -> int:
     if jax.process_index() != 0:  # several hosts: the first one writes and reports
         return 0 if result.ok else 1
     fitted = fitting.fitted_scenes(scenes, result.selection, result.y) if several_frames else None
-    paths = save_outputs(result, outdir, stem, args.deck, ", ".join(targets), image_name=f"{stem}.sunimg", frames=fitted)
-    if several:
-        add_to_report(paths["report"], multi)
-    print(table_text(result))
+    print(table_text(result))  # first: should the outputs fail to be written, the fitted values are on screen
     if several:
         print(summary_line(multi))
+    try:
+        paths = save_outputs(result, outdir, stem, args.deck, ", ".join(targets), image_name=f"{stem}.sunimg", frames=fitted)
+        if several:
+            add_to_report(paths["report"], multi)
+    except OSError as e:
+        raise RtjaxError(f"{e.filename or outdir}: cannot write the fit's outputs: {e.strerror or e} "
+                         "(the fitted values are printed above)") from None
     print("wrote " + ", ".join(paths[k] for k in ("deck", "image", "report", "plot")))
     return 0 if result.ok else 1
+
+
+def _check_output_folder(folder: str) -> None:
+    """Refuse, before a fit starts, an output folder that cannot be made or written (a
+    fit runs for minutes; its outputs must not be lost to a mistyped `-o`). Creates
+    nothing: the outputs make the folder when they are written."""
+    path = os.path.abspath(folder)
+    while not os.path.lexists(path) and os.path.dirname(path) != path:
+        path = os.path.dirname(path)
+    if not os.path.isdir(path):
+        raise RtjaxError(f"{folder}: cannot write the fit's outputs there: {path} is not a folder")
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise RtjaxError(f"{folder}: cannot write the fit's outputs there: {path} is not writable")
 
 
 def cmd_bench(args) -> int:
@@ -371,7 +399,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="match the full-size level at pixel centres, as rtjax render makes targets (default); "
                         "--no-exact-polish: a last box-filtered level --polish wide (then use e.g. 0.02), for antialiased targets")
     f.add_argument("--loss", choices=("l2", "huber", "cauchy"), default="cauchy", help="residual loss (default cauchy: robust)")
-    f.add_argument("--loss-scale", type=float, default=10.0, help="robust loss scale in levels (default 10)")
+    f.add_argument("--loss-scale", type=_positive_float, default=10.0, help="robust loss scale in levels (default 10)")
     f.add_argument("--nuisance", default="", help="also fit a camera model for a photo-like target: gain,gamma,blur,chroma,order, or camera (all five: response, Gaussian blur in pixels, JPEG chroma blur, blur before/after the response)")
     f.add_argument("--photo", action="store_true",
                    help="the target is a photo (another renderer, a camera): fit a camera model and the scene's appearance "

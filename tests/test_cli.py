@@ -241,6 +241,25 @@ def test_bad_options_are_one_line(tmp_path, capsys, argv):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("argv, says", [
+    (["--loss-scale", "-1"], "rtjax fit: argument --loss-scale: expected a number > 0, found -1"),
+    (["--loss-scale", "x"], "rtjax fit: argument --loss-scale: expected a number, found 'x'"),
+    (["--levels", "0"], "levels must be a count ≥ 1 or widths ≥ 1 pixel, not 0"),
+    (["--levels", "0,32"], "levels must be a count ≥ 1 or widths ≥ 1 pixel, not [0, 32]"),
+])
+def test_bad_fit_options_are_one_line(tmp_path, capsys, argv, says):
+    """Refused before the target is read or anything is compiled; nothing is written."""
+    deck = write_deck(tmp_path, SMALL + "rend a.ras\n")
+    args = ["fit", deck, str(tmp_path / "target.png"), "-o", str(tmp_path / "out" / "f.dat"), *argv]
+    try:
+        code = cli.main(args)
+    except SystemExit as info:  # argparse's own refusals
+        code = info.code
+    assert code == 2
+    assert capsys.readouterr().err == says + "\n"
+    assert not (tmp_path / "out").exists()
+
+
 def test_absolute_and_dotdot_paths_with_allow_any_path(tmp_path, capsys):
     target = tmp_path / "elsewhere" / "abs.ras"
     deck = write_deck(tmp_path, SMALL + f"rend {target}\nrend ../up.ras\n")

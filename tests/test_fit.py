@@ -118,6 +118,18 @@ def test_bad_requests(truth, target, bad, match):
         fitting.fit(truth, target, **kwargs)
 
 
+@pytest.mark.parametrize("bad, match", [(dict(levels=0), "levels must be"), (dict(levels=[0, 32]), "levels must be"),
+                                        (dict(levels=2.5), "levels must be"), (dict(loss_scale=-1.0), "loss_scale must be"),
+                                        (dict(loss_scale=float("nan")), "loss_scale must be")])
+def test_bad_options(bad, match):
+    """Values with no meaning are refused when the options are made, not taken for
+    something else (a count of 0 levels was one level; a negative loss scale flipped
+    the robust loss's shape)."""
+    with pytest.raises(fitting.FitError, match=match):
+        fitting.FitOptions(**bad)
+    assert fitting.FitOptions(levels=1).levels == 1 and fitting.FitOptions(levels=[32, 64]).levels == [32, 64]
+
+
 @pytest.mark.slow
 def test_a_solve_that_cannot_converge_reports_so(truth, target):
     """One step from far away: the result says the steps ran out; nothing raises."""
@@ -203,6 +215,22 @@ def test_cli_fit_writes_its_outputs(tmp_path, truth, target):
     assert abs(float(fitted.frames[0].scene.params.ke) - report["parameters"][0]["fitted"]) < 1e-6
     assert rtjax.load_image(tmp_path / "out" / "fitted.sunimg").shape == target.shape
     assert (tmp_path / "out" / "fitted_convergence.png").stat().st_size > 1000
+
+
+def test_cli_fit_refuses_an_output_folder_it_cannot_write_before_fitting(tmp_path, truth):
+    """`-o` below a file: one line naming the folder, exit 2, before any iteration runs
+    (a fit's outputs must not be lost after minutes of work); nothing is written."""
+    rtjax.save_deck(tmp_path / "start.dat", truth, "x.sunimg")
+    rtjax.save_image(tmp_path / "t.png", np.zeros((truth.structure.height, truth.structure.width, 3)))
+    (tmp_path / "file").write_text("not a folder")
+    proc = subprocess.run([sys.executable, "-m", "rtjax", "fit", str(tmp_path / "start.dat"), str(tmp_path / "t.png"),
+                           "--free", "ke", "-o", str(tmp_path / "file" / "out" / "fitted.dat")],
+                          capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.strip() == (f"{tmp_path / 'file' / 'out'}: cannot write the fit's outputs there: "
+                                   f"{tmp_path / 'file'} is not a folder")
+    assert "step" not in proc.stdout
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "start.dat", "t.png"]
 
 
 def test_cli_fit_bad_input_is_one_line(tmp_path, truth):
