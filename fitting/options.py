@@ -95,6 +95,8 @@ class FitOptions:
             given = list(np.ravel(self.levels))
             if not given or any(int(k) != k or k < 1 for k in given):
                 raise FitError(f"levels must be a count ≥ 1 or widths ≥ 1 pixel, not {self.levels}")
+        if self.polish is not None and not self.polish > 0:
+            raise FitError(f"polish must be an edge width > 0 pixels (or None: no full-size level of its own), not {self.polish}")
         if not 0 < self.loss_scale < np.inf:
             raise FitError(f"loss_scale must be a number of levels > 0, not {self.loss_scale}")
         object.__setattr__(self, "nuisance", nuisance_names(self.nuisance or ()))

@@ -120,11 +120,12 @@ def test_bad_requests(truth, target, bad, match):
 
 @pytest.mark.parametrize("bad, match", [(dict(levels=0), "levels must be"), (dict(levels=[0, 32]), "levels must be"),
                                         (dict(levels=2.5), "levels must be"), (dict(loss_scale=-1.0), "loss_scale must be"),
-                                        (dict(loss_scale=float("nan")), "loss_scale must be")])
+                                        (dict(loss_scale=float("nan")), "loss_scale must be"),
+                                        (dict(polish=-1.0), "polish must be")])
 def test_bad_options(bad, match):
     """Values with no meaning are refused when the options are made, not taken for
-    something else (a count of 0 levels was one level; a negative loss scale flipped
-    the robust loss's shape)."""
+    something else (a count of 0 levels was one level; a negative loss scale or
+    polishing width ran a fit)."""
     with pytest.raises(fitting.FitError, match=match):
         fitting.FitOptions(**bad)
     assert fitting.FitOptions(levels=1).levels == 1 and fitting.FitOptions(levels=[32, 64]).levels == [32, 64]
