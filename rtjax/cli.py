@@ -257,7 +257,7 @@ def cmd_fit(args) -> int:
     frame = deck.frames[chosen[0]]
     out = args.output or os.path.splitext(os.path.basename(args.deck))[0] + "_fitted.dat"
     outdir, stem = os.path.dirname(out) or ".", os.path.splitext(os.path.basename(out))[0]
-    _check_output_folder(outdir)
+    _check_output_folder(outdir, "the fit's outputs")
     import jax
 
     options = fitting.FitOptions(
@@ -309,17 +309,17 @@ def cmd_fit(args) -> int:
     return 0 if result.ok else 1
 
 
-def _check_output_folder(folder: str) -> None:
-    """Refuse, before a fit starts, an output folder that cannot be made or written (a
-    fit runs for minutes; its outputs must not be lost to a mistyped `-o`). Creates
-    nothing: the outputs make the folder when they are written."""
+def _check_output_folder(folder: str, what: str) -> None:
+    """Refuse, before a fit or a benchmark starts, an output folder that cannot be made or
+    written (they run for minutes; `what` they write must not be lost to a mistyped
+    `-o`). Creates nothing: the outputs make the folder when they are written."""
     path = os.path.abspath(folder)
     while not os.path.lexists(path) and os.path.dirname(path) != path:
         path = os.path.dirname(path)
     if not os.path.isdir(path):
-        raise RtjaxError(f"{folder}: cannot write the fit's outputs there: {path} is not a folder")
+        raise RtjaxError(f"{folder}: cannot write {what} there: {path} is not a folder")
     if not os.access(path, os.W_OK | os.X_OK):
-        raise RtjaxError(f"{folder}: cannot write the fit's outputs there: {path} is not writable")
+        raise RtjaxError(f"{folder}: cannot write {what} there: {path} is not writable")
 
 
 def cmd_bench(args) -> int:
@@ -333,7 +333,12 @@ def cmd_bench(args) -> int:
     deck = load_deck(args.deck)  # a bad deck is one line before anything is measured
     if not deck.frames:
         raise DeckError(deck.path, None, "the deck has no rend line: nothing to measure")
-    main_bench(args.deck, quick=args.quick, scale=args.scale, outdir=args.outdir)
+    _check_output_folder(args.outdir, "the benchmark's outputs")
+    try:
+        main_bench(args.deck, quick=args.quick, scale=args.scale, outdir=args.outdir)
+    except OSError as e:
+        raise RtjaxError(f"{e.filename or args.outdir}: cannot write the benchmark's outputs: {e.strerror or e} "
+                         "(its table is printed above)") from None
     return 0
 
 

@@ -260,6 +260,23 @@ def test_bad_fit_options_are_one_line(tmp_path, capsys, argv, says):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("command, flag, what", [("bench", "-o", "the benchmark's outputs"),
+                                                ("fit", "-o", "the fit's outputs")])
+def test_an_output_folder_below_a_file_is_refused_first(tmp_path, capsys, command, flag, what):
+    """`rtjax bench` and `rtjax fit` run for minutes: an output folder they could not
+    write is one line and exit 2 before they start (it was a traceback at the end)."""
+    deck = write_deck(tmp_path, SMALL + "rend a.ras\n")
+    (tmp_path / "file").write_text("keep me")
+    out = tmp_path / "file" / "out"
+    args = [command, deck] + ([str(tmp_path / "target.png")] if command == "fit" else ["--quick"])
+    code = cli.main(args + [flag, str(out / "f.dat") if command == "fit" else str(out)])
+    captured = capsys.readouterr()
+    assert code == 2 and captured.out == ""
+    assert captured.err == f"{out}: cannot write {what} there: {tmp_path / 'file'} is not a folder\n"
+    assert (tmp_path / "file").read_text() == "keep me"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.dat", "file"]
+
+
 def test_absolute_and_dotdot_paths_with_allow_any_path(tmp_path, capsys):
     target = tmp_path / "elsewhere" / "abs.ras"
     deck = write_deck(tmp_path, SMALL + f"rend {target}\nrend ../up.ras\n")

@@ -204,9 +204,9 @@ def main_bench(deck: str, *, quick: bool, scale: bool, outdir: str, log: Callabl
     cfg = cfg or (Config.quick() if quick else Config.full())
     result = run(deck, cfg, scale=scale, log=log)
     stem = os.path.splitext(os.path.basename(deck))[0]
-    paths = write_outputs(result, outdir, stem)
     log("")
-    log(table_text(result))
+    log(table_text(result))  # before writing: should that fail, the figures are on screen
+    paths = write_outputs(result, outdir, stem)
     log("wrote " + ", ".join(paths.values()) + f"  ({result['total_s']:.0f} s in all)")
     return paths
 
