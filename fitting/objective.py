@@ -57,10 +57,14 @@ def load_target(target, *, assignment_order: bool = False) -> np.ndarray:
     """A target image as float (H, W, 3) in 0..255: a path (Sun raster or anything
     OpenImageIO reads) or an array."""
     if isinstance(target, (str, bytes)) or hasattr(target, "__fspath__"):
-        return np.asarray(rtjax.load_image(target, assignment_order=assignment_order), np.float64)
+        return np.asarray(rtjax.load_image(target, assignment_order=assignment_order), np.float64)  # finite, or refused
     a = np.asarray(target, np.float64)
     if a.ndim != 3 or a.shape[2] != 3:
         raise FitError(f"target image has shape {a.shape}; expected (height, width, 3)")
+    bad = int(np.count_nonzero(~np.isfinite(a)))
+    if bad:  # every residual would be NaN
+        raise FitError(f"target image has {bad} non-finite values (NaN or infinity); a target must be finite "
+                       "everywhere (give such pixels any value and a mask)")
     return a
 
 

@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .errors import RtjaxError
 from .spheres import CULL_ABOVE
 
 OPAQUE, MIRROR, GLASS, TEXTURE = "opaq", "mirr", "trpa", "tmap"
@@ -146,6 +147,9 @@ class Scene(eqx.Module):
                 new[k] = tuple(jnp.asarray(t, jnp.result_type(o)) for t, o in zip(v, old))
             else:
                 new[k] = jnp.asarray(v, jnp.result_type(old))
+                if new[k] is not None and getattr(p, k) is not None and new[k].shape != old.shape:
+                    raise RtjaxError(f"{k} has shape {new[k].shape}; this scene's is {old.shape} (its structure "
+                                     "fixes the number of spheres and lights)")
         return Scene(self.structure, Params(**new))
 
     def resized(self, width: int, height: int | None = None) -> "Scene":
@@ -156,4 +160,6 @@ class Scene(eqx.Module):
         if height is None:
             ha, va = (float(x) for x in np.asarray(self.params.vang))
             height = image_height(int(width), ha, va)
+        if int(width) < 1 or int(height) < 1:
+            raise RtjaxError(f"an image must be at least 1 pixel a side, not {int(width)}×{int(height)}")
         return Scene(self.structure.replace(width=int(width), height=int(height)), self.params)

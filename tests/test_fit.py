@@ -110,6 +110,15 @@ def test_target_of_the_wrong_aspect_is_a_clear_error(truth):
         fitting.fit(truth, np.zeros((64, 64, 3)), "centers")
 
 
+def test_non_finite_target_is_a_clear_error(truth, target):
+    """NaN or infinity in a target array made every residual NaN (and the fit ran on);
+    it is refused with the count (image files holding them are refused when read)."""
+    bad = target.copy()
+    bad[3, 4] = [np.nan, np.inf, 0]
+    with pytest.raises(fitting.FitError, match="target image has 2 non-finite values"):
+        fitting.fit(truth, bad, "centers")
+
+
 @pytest.mark.parametrize("bad, match", [(dict(free="wings"), "unknown parameter family"), (dict(solver="newton"), "unknown solver"),
                                         (dict(free="kt"), "kt: none of"), (dict(spheres=[5]), "out of range")])
 def test_bad_requests(truth, target, bad, match):

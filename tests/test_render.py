@@ -236,3 +236,19 @@ def test_bad_render_options():
     for kw in (dict(spp=0), dict(depth=-1), dict(dtype="int32"), dict(tile=0)):
         with pytest.raises(rtjax.RtjaxError):
             rtjax.render(s, **kw)
+
+
+def test_scene_changes_keep_the_structure():
+    """`Scene.replace` takes arrays of the scene's own shapes (its structure fixes the
+    number of spheres and lights: a (3, 3) centres array for one sphere rendered three
+    spheres' worth of nothing it described); `resized` refuses an empty image; a field
+    not set (occlusion) can be set and cleared."""
+    s = scene_from_text("sphe 0 0 0 1\nopaq 1 1 1 0 1\n" + CAMERA)
+    with pytest.raises(rtjax.RtjaxError, match=r"centers has shape \(3, 3\); this scene's is \(1, 3\)"):
+        s.replace(centers=np.zeros((3, 3)))
+    with pytest.raises(rtjax.RtjaxError, match="at least 1 pixel a side"):
+        s.resized(0)
+    moved = s.replace(centers=[[0.0, 1.0, 0.0]], ke=0.5, occlusion=[1.0])
+    assert moved.params.centers.shape == (1, 3) and float(moved.params.ke) == 0.5
+    assert moved.replace(occlusion=None).params.occlusion is None
+    assert s.resized(5).structure.width == 5
