@@ -522,4 +522,8 @@ def prepare_mask(mask, height: int, width: int) -> np.ndarray:
     if m.shape != (height, width):
         size = f"{m.shape[1]}×{m.shape[0]}" if m.ndim == 2 else f"of shape {m.shape}"
         raise FitError(f"the mask is {size}, the target {width}×{height}")
+    if not (np.all(np.isfinite(m)) and m.min() >= 0 and m.max() <= 1):
+        raise FitError("the mask's weights must be numbers in [0, 1] (0: ignored, 1: counted)")
+    if not m.any():
+        raise FitError("the mask leaves no pixel to fit: every weight is 0")
     return m[..., None]

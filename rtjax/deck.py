@@ -485,4 +485,8 @@ def save_deck(path: str | os.PathLike, frames: Sequence[Frame] | Scene, output: 
     """Write deck text atomically."""
     from .atomic import atomic_write
 
-    atomic_write(path, format_deck(frames, output, header).encode("utf-8"))
+    text = format_deck(frames, output, header)
+    try:
+        atomic_write(path, text.encode("utf-8"))
+    except OSError as e:
+        raise RtjaxError(f"{os.fspath(path)}: cannot write: {e.strerror or e}") from e

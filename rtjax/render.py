@@ -85,8 +85,8 @@ def check_subdivide(edges, subdivide: bool) -> None:
 def resolve_options(scene: Scene, depth, spp, dtype, edges, tile, subdivide: bool = False) -> Options:
     """`render`'s options checked (a clear `RtjaxError` for a bad one) and resolved;
     `render_batch` and `render_frames` share them."""
-    if int(spp) < 1:
-        raise RtjaxError(f"spp must be ≥ 1, not {spp}")
+    if int(spp) != spp or spp < 1:
+        raise RtjaxError(f"spp must be a whole number ≥ 1, not {spp}")
     edges = float(edges)
     if not (0 <= edges <= MAX_EDGE_WIDTH):
         raise RtjaxError(f"edges (an edge width in pixels) must be in [0, {MAX_EDGE_WIDTH:g}], not {edges}")

@@ -528,6 +528,16 @@ def test_writer_round_trips_textures(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["copy.dat", "t.dat", "t.ras"]  # no temporary file left
 
 
+def test_writer_into_a_folder_that_cannot_be_written_is_one_error(tmp_path):
+    """A deck written below a file: an RtjaxError naming the path (it was an OSError
+    naming the temporary file), nothing left behind."""
+    deck = parse("sphe 0 0 0 1\nmirr\n" + CAMERA + "rend a.ras\n")
+    (tmp_path / "file").write_text("keep me")
+    with pytest.raises(rtjax.RtjaxError, match=f"^{tmp_path / 'file' / 'd.dat'}: cannot write: "):
+        save_deck(tmp_path / "file" / "d.dat", deck.frames)
+    assert sorted(os.listdir(tmp_path)) == ["file"] and (tmp_path / "file").read_text() == "keep me"
+
+
 def test_writer_single_scene_and_fitted_values():
     scene = load_deck(SAMPLE).frames[0].scene
     fitted = scene.replace(ke=np.float32(0.123456789), radii=scene.params.radii * np.float32(1.1))

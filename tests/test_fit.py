@@ -119,6 +119,19 @@ def test_non_finite_target_is_a_clear_error(truth, target):
         fitting.fit(truth, bad, "centers")
 
 
+@pytest.mark.parametrize("mask, says", [(np.full((48, 64), np.nan), "weights must be numbers in"),
+                                        (np.full((48, 64), 2.0), "weights must be numbers in"),
+                                        (np.zeros((48, 64)), "leaves no pixel to fit")])
+def test_bad_masks_are_clear_errors(mask, says):
+    """A mask with NaN or weights outside [0, 1], or one that ignores every pixel, ran a
+    fit of NaN or of nothing; each is refused."""
+    from fitting.objective import prepare_mask
+
+    with pytest.raises(fitting.FitError, match=says):
+        prepare_mask(mask, 48, 64)
+    assert prepare_mask(np.ones((48, 64), bool), 48, 64).shape == (48, 64, 1)
+
+
 @pytest.mark.parametrize("bad, match", [(dict(free="wings"), "unknown parameter family"), (dict(solver="newton"), "unknown solver"),
                                         (dict(free="kt"), "kt: none of"), (dict(spheres=[5]), "out of range")])
 def test_bad_requests(truth, target, bad, match):

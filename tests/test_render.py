@@ -233,7 +233,7 @@ def test_tiles_past_the_count_are_skipped_and_the_others_differentiate_as_one():
 
 def test_bad_render_options():
     s = scene_from_text("sphe 0 0 0 1\nopaq 1 1 1 0 1\n" + CAMERA)
-    for kw in (dict(spp=0), dict(depth=-1), dict(dtype="int32"), dict(tile=0)):
+    for kw in (dict(spp=0), dict(spp=2.5), dict(depth=-1), dict(dtype="int32"), dict(tile=0)):
         with pytest.raises(rtjax.RtjaxError):
             rtjax.render(s, **kw)
 
