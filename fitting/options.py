@@ -23,10 +23,10 @@ class FitOptions:
       squares) or 'bfgs' (minimisation of the same loss).
     - `max_steps`: iterations in all, across the coarse-to-fine levels.
     - `levels`: the pyramid's widths (`objective.schedule_widths`): None (default: an
-      eighth, a quarter and the full width), an int (that many levels halving the width,
-      none below 48 pixels; 1: full size only) or a list of widths (counts and widths ≥ 1). None with textures
-      free (and only `texels.APPEARANCE` families): the full-size image, every pixel,
-      plain renders (`texels.texel_levels`). Every level but a
+      eighth, a quarter and the full width), an int ≥ 1 (that many levels halving the
+      width, none below 48 pixels; 1: full size only) or a list of widths ≥ 1. None with
+      textures free (and only `texels.APPEARANCE` families): the full-size image, every
+      pixel, plain renders (`texels.texel_levels`). Every level but a
       full-size one matched at pixel centres renders as many samples as the coarsest has
       pixels, so one compiled step serves them.
     - `edges`: edge width of the silhouette-aware render in pixels of each level (None:
@@ -96,7 +96,8 @@ class FitOptions:
             if not given or any(int(k) != k or k < 1 for k in given):
                 raise FitError(f"levels must be a count ≥ 1 or widths ≥ 1 pixel, not {self.levels}")
         if self.polish is not None and not self.polish > 0:
-            raise FitError(f"polish must be an edge width > 0 pixels (or None: no full-size level of its own), not {self.polish}")
+            raise FitError(f"polish must be an edge width > 0 pixels (or None: no full-size level of its own), "
+                           f"not {self.polish}")
         if not 0 < self.loss_scale < np.inf:
             raise FitError(f"loss_scale must be a number of levels > 0, not {self.loss_scale}")
         object.__setattr__(self, "nuisance", nuisance_names(self.nuisance or ()))

@@ -147,7 +147,7 @@ class Scene(eqx.Module):
                 new[k] = tuple(jnp.asarray(t, jnp.result_type(o)) for t, o in zip(v, old))
             else:
                 new[k] = jnp.asarray(v, jnp.result_type(old))
-                if new[k] is not None and getattr(p, k) is not None and new[k].shape != old.shape:
+                if getattr(p, k) is not None and new[k].shape != old.shape:
                     raise RtjaxError(f"{k} has shape {new[k].shape}; this scene's is {old.shape} (its structure "
                                      "fixes the number of spheres and lights)")
         return Scene(self.structure, Params(**new))
