@@ -257,9 +257,10 @@ def cmd_fit(args) -> int:
     frame = deck.frames[chosen[0]]
     out = args.output or os.path.splitext(os.path.basename(args.deck))[0] + "_fitted.dat"
     outdir, stem = os.path.dirname(out) or ".", os.path.splitext(os.path.basename(out))[0]
-    _check_output_folder(outdir, "the fit's outputs")
     import jax
 
+    if jax.process_index() == 0:  # several hosts: the first one writes
+        _check_output_folder(outdir, "the fit's outputs")
     options = fitting.FitOptions(
         solver=args.solver,
         max_steps=args.max_steps,
