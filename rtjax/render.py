@@ -246,8 +246,8 @@ def colours_at(s: Structure, p: Params, xy, step, depth: int, tile: int, mode: M
 def check_positions(xy, dtype) -> Array:
     """Image positions as a (K, 2) array of `dtype`, or a clear error."""
     xy = jnp.asarray(xy, dtype)
-    if xy.ndim != 2 or xy.shape[1] != 2:
-        raise RtjaxError(f"xy must have shape (K, 2), not {xy.shape}")
+    if xy.ndim != 2 or xy.shape[1] != 2 or xy.shape[0] == 0:
+        raise RtjaxError(f"xy must have shape (K, 2) with K ≥ 1, not {xy.shape}")
     return xy
 
 

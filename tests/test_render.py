@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import os
 
 import jax
@@ -236,6 +237,10 @@ def test_bad_render_options():
     for kw in (dict(spp=0), dict(spp=2.5), dict(depth=-1), dict(dtype="int32"), dict(tile=0)):
         with pytest.raises(rtjax.RtjaxError):
             rtjax.render(s, **kw)
+    for xy in (np.zeros((0, 2)), np.zeros(5), np.zeros((5, 3))):  # no positions was a ZeroDivisionError
+        for sampled in (rtjax.render_samples, functools.partial(rtjax.edge_samples, edges=1.0)):
+            with pytest.raises(rtjax.RtjaxError, match=r"xy must have shape \(K, 2\) with K ≥ 1"):
+                sampled(s, xy)
 
 
 def test_scene_changes_keep_the_structure():
