@@ -299,13 +299,10 @@ def cmd_fit(args) -> int:
     print(table_text(result))  # first: should the outputs fail to be written, the fitted values are on screen
     if several:
         print(summary_line(multi))
-    try:
+    with _writing(outdir, "the fit's outputs", "the fitted values are printed above"):
         paths = save_outputs(result, outdir, stem, args.deck, ", ".join(targets), image_name=f"{stem}.sunimg", frames=fitted)
         if several:
             add_to_report(paths["report"], multi)
-    except OSError as e:
-        raise RtjaxError(f"{e.filename or outdir}: cannot write the fit's outputs: {e.strerror or e} "
-                         "(the fitted values are printed above)") from None
     print("wrote " + ", ".join(paths[k] for k in ("deck", "image", "report", "plot")))
     return 0 if result.ok else 1
 
@@ -323,6 +320,16 @@ def _check_output_folder(folder: str, what: str) -> None:
         raise RtjaxError(f"{folder}: cannot write {what} there: {path} is not writable")
 
 
+@contextlib.contextmanager
+def _writing(folder: str, what: str, shown: str) -> Iterator[None]:
+    """An OSError while writing `what` into `folder` becomes one line naming the file and
+    saying where the results are (`shown`: they were printed before the write)."""
+    try:
+        yield
+    except OSError as e:
+        raise RtjaxError(f"{e.filename or folder}: cannot write {what}: {e.strerror or e} ({shown})") from None
+
+
 def cmd_bench(args) -> int:
     """`rtjax bench`: the speed/accuracy table, derivative costs and plots of a deck."""
     import jax
@@ -335,11 +342,8 @@ def cmd_bench(args) -> int:
     if not deck.frames:
         raise DeckError(deck.path, None, "the deck has no rend line: nothing to measure")
     _check_output_folder(args.outdir, "the benchmark's outputs")
-    try:
+    with _writing(args.outdir, "the benchmark's outputs", "its table is printed above"):
         main_bench(args.deck, quick=args.quick, scale=args.scale, outdir=args.outdir)
-    except OSError as e:
-        raise RtjaxError(f"{e.filename or args.outdir}: cannot write the benchmark's outputs: {e.strerror or e} "
-                         "(its table is printed above)") from None
     return 0
 
 
