@@ -23,7 +23,7 @@ import numpy as np
 
 from .assemble import SPHERE_DEFAULTS, Line, Snapshot, Textures, Value, assemble
 from .camera import image_height
-from .errors import DeckError, RtjaxError, shown
+from .errors import DeckError, RtjaxError, shown, writing
 from .scene import TEXTURE, Scene
 
 # Ordinary float syntax, ASCII digits only (`\d` alone would accept any Unicode digit).
@@ -486,7 +486,5 @@ def save_deck(path: str | os.PathLike, frames: Sequence[Frame] | Scene, output: 
     from .atomic import atomic_write
 
     text = format_deck(frames, output, header)
-    try:
+    with writing(path):
         atomic_write(path, text.encode("utf-8"))
-    except OSError as e:
-        raise RtjaxError(f"{os.fspath(path)}: cannot write: {e.strerror or e}") from e

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
+from collections.abc import Iterator
+
 
 def shown(token: str) -> str:
     """A token as it reads in a one-line message: as is if printable, else escaped."""
@@ -25,3 +29,13 @@ class DeckError(RtjaxError):
 
 class ImageError(RtjaxError):
     """An image file that cannot be read or written (truncated, bad header, unknown format)."""
+
+
+@contextlib.contextmanager
+def writing(path: str | os.PathLike, error: type[RtjaxError] = RtjaxError) -> Iterator[None]:
+    """An OSError while writing `path` becomes one `error` naming it: what the commands
+    print as a line, not a traceback naming a temporary file."""
+    try:
+        yield
+    except OSError as e:
+        raise error(f"{os.fspath(path)}: cannot write: {e.strerror or e}") from e

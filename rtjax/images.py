@@ -12,7 +12,7 @@ import os
 import numpy as np
 
 from rtjax.atomic import atomic_path
-from rtjax.errors import ImageError
+from rtjax.errors import ImageError, writing
 from rtjax.sunraster import SUN_MAGIC, is_sunraster_path, read_sunraster, write_sunraster
 
 __all__ = ["FLOAT_EXTENSIONS", "check_writable", "load_image", "load_image_uint8", "save_image", "to_uint8"]
@@ -74,19 +74,16 @@ def save_image(path: str | os.PathLike, image: object, *, assignment_order: bool
         spec, data = oiio.ImageSpec(width, height, 3, "float"), pixels.astype(np.float32) / np.float32(255)
     else:
         spec, data = oiio.ImageSpec(width, height, 3, "uint8"), pixels
-    try:
-        with atomic_path(name) as tmp:
-            try:
-                if not out.open(tmp, spec):
-                    raise ImageError(f"{name}: cannot write: {_oiio_message(out.geterror())}")
-                if not out.write_image(data):
-                    raise ImageError(f"{name}: cannot write: {_oiio_message(out.geterror())}")
-            finally:
-                closed = out.close()
-            if not closed:
+    with writing(name, ImageError), atomic_path(name) as tmp:
+        try:
+            if not out.open(tmp, spec):
                 raise ImageError(f"{name}: cannot write: {_oiio_message(out.geterror())}")
-    except OSError as e:
-        raise ImageError(f"{name}: cannot write: {e.strerror or e}") from e
+            if not out.write_image(data):
+                raise ImageError(f"{name}: cannot write: {_oiio_message(out.geterror())}")
+        finally:
+            closed = out.close()
+        if not closed:
+            raise ImageError(f"{name}: cannot write: {_oiio_message(out.geterror())}")
 
 
 def load_image(path: str | os.PathLike, *, assignment_order: bool = False) -> np.ndarray:

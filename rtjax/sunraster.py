@@ -19,7 +19,7 @@ import struct
 import numpy as np
 
 from rtjax.atomic import atomic_write
-from rtjax.errors import ImageError
+from rtjax.errors import ImageError, writing
 
 __all__ = [
     "SUN_EXTENSIONS",
@@ -200,7 +200,5 @@ def write_sunraster(path: str | os.PathLike, image: np.ndarray, *, assignment_or
     """Write an (H, W, 3) uint8 image as a Sun raster file, atomically."""
     name = os.fspath(path)
     data = encode_sunraster(image, assignment_order=assignment_order)
-    try:
+    with writing(name, ImageError):
         atomic_write(name, data)
-    except OSError as e:
-        raise ImageError(f"{name}: cannot write: {e.strerror or e}") from e
