@@ -39,15 +39,13 @@ def entry_rate(normal, t, d, do, dd):
 def curve_terms(o, d, diff, ce, re, ch, rh):
     """Signed distance δ (sample steps, > 0 on H's side) from rays to the curve where
     sphere E (ce, re) cuts into H (ch, rh), and the curve's normal (nx, ny) in the image.
-    δ is differentiable in the scene; its rate is not (at the curve δ = 0, so the
-    rate's derivative does not count)."""
-    sg = jax.lax.stop_gradient
+    δ and the normal are differentiable in the scene, the rate included: off the curve
+    (δ ≠ 0, within the box) δ moves with it."""
     te, ne = entry(o, d, ce, re)
     th, nh = entry(o, d, ch, rh)
-    ox, dx, oy, dy = sg(tuple(diff))
-    d0, te0, th0, ne0, nh0 = sg((d, te, th, ne, nh))
-    gx = entry_rate(ne0, te0, d0, ox, dx) - entry_rate(nh0, th0, d0, ox, dx)
-    gy = entry_rate(ne0, te0, d0, oy, dy) - entry_rate(nh0, th0, d0, oy, dy)
+    ox, dx, oy, dy = diff
+    gx = entry_rate(ne, te, d, ox, dx) - entry_rate(nh, th, d, ox, dx)
+    gy = entry_rate(ne, te, d, oy, dy) - entry_rate(nh, th, d, oy, dy)
     floor = jnp.asarray(tiny(jnp.result_type(o)), jnp.result_type(o))
     norm_ = safe_sqrt(gx**2 + gy**2, floor)
     return safe_div(te - th, norm_), safe_div(gx, norm_), safe_div(gy, norm_)

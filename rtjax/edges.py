@@ -116,12 +116,11 @@ MIN_INCIDENCE = 0.05
 
 def hit_motion(hit: spheres.Hit, o, d, diff: Differentials) -> Motion:
     """How the hit point moves per sample step: ∂P = ∂o + t·∂d + ∂t·d on the surface,
-    ∂t = −N·(∂o + t·∂d)/(N·d), with |N·d| floored at `MIN_INCIDENCE`. It scales edge
-    distances only, so it carries no derivative (see `trace.segment`). N·d's sign is
+    ∂t = −N·(∂o + t·∂d)/(N·d), with |N·d| floored at `MIN_INCIDENCE`; differentiable in
+    the scene, as the differentials are (see `trace.segment`). N·d's sign is
     the hit's side (negative entering, else positive), not N·d's own, which is
     rounding alone at a grazing hit (the silhouette mode's forced ones)."""
-    sg = jax.lax.stop_gradient
-    normal, t, d = sg(hit.normal_out), sg(hit.t), sg(d)
+    normal, t = hit.normal_out, hit.t
     nd = dot(normal, d)
     nd = jnp.where(hit.entering, jnp.minimum(nd, -MIN_INCIDENCE), jnp.maximum(nd, MIN_INCIDENCE))
 

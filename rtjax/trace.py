@@ -257,13 +257,13 @@ def segment(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: 
     if rays.diff is not None:
         # differentials of the next ray: ∂o' = ∂P, ∂d' through the reflection/refraction
         # with ∂N = ±∂P/r (the facing normal of a sphere moves with the hit point). They
-        # scale edge distances (δ = (|l| − r)/rate), whose derivative at an edge, where
-        # |l| = r, does not depend on the rate: so they carry no derivative themselves.
-        sg = jax.lax.stop_gradient
-        sign = jnp.where(entering, 1, -1).astype(o.dtype) / sg(p.radii)[idx]
-        outs = [jax.jvp(turn, (sg(d), sg(n)), (dd, sign * dp))[1] for dd, dp in ((rays.diff.dx, motion.x),
-                                                                                  (rays.diff.dy, motion.y))]
-        new_diff = edges.Differentials(*sg((motion.x, outs[0], motion.y, outs[1])))
+        # carry the scene's derivatives: an edge's distance δ = gap/rate from a pixel's
+        # centre moves with the rate wherever δ ≠ 0, as in a mirror or glass sphere that
+        # moves (the world it shows stretches), and the box filter reads δ across the box.
+        sign = jnp.where(entering, 1, -1).astype(o.dtype) / p.radii[idx]
+        outs = [jax.jvp(turn, (d, n), (dd, sign * dp))[1] for dd, dp in ((rays.diff.dx, motion.x),
+                                                                          (rays.diff.dy, motion.y))]
+        new_diff = edges.Differentials(motion.x, outs[0], motion.y, outs[1])
     return Rays(hit.point, new_d, hit.index, weight, colour, rays.level + 1, flip, key, new_diff), hit, shade
 
 

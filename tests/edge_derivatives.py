@@ -72,6 +72,24 @@ def derivative_images(name: str, edges: float = 1.0, spp: int = 1, subdivide: bo
     return np.asarray(image), np.moveaxis(np.asarray(jac), -1, 0)
 
 
+def own_differences(name: str, step: float, edges: float = 1.0, subdivide: bool = False) -> np.ndarray:
+    """Central differences (P, H, W, 3) of the mode's own image, each parameter stepped by
+    `step` pixels of image motion: what its jacfwd must equal as the step goes to 0,
+    wherever no discrete choice (an edge, a hit) changes within the step."""
+    s = scene(name)
+    at, n = varied(name, s)
+    p = s.params
+    sizes = [q[4] for q in parameters(name, np.asarray(p.eye), np.asarray(p.refp), float(p.vang[0]), s.structure.width,
+                                      np.asarray(p.centers))]
+    f = jax.jit(lambda v: rtjax.render(at(v), depth=DECKS[name][1], edges=edges, subdivide=subdivide))
+    out = []
+    for i, size in enumerate(sizes):
+        e = np.zeros(n)
+        e[i] = step * size
+        out.append((np.asarray(f(jnp.asarray(e))) - np.asarray(f(jnp.asarray(-e)))) / (2 * e[i]))
+    return np.stack(out)
+
+
 def cosine(a, b) -> float:
     return float(np.sum(a * b) / (np.linalg.norm(a) * np.linalg.norm(b)))
 
