@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import json
+import re
 import subprocess
 import sys
 
@@ -255,11 +256,17 @@ def test_several_starts_judge_as_one(small_fit):
     problem, stepper = small_fit
     y = jax.tree_util.tree_map(lambda v: v + 0.05, problem.y0)  # geometry and appearance off the start
     one, several = judge(problem, Single(stepper), y), judge(problem, Parallel(stepper, None, "map", 3), y)
-    assert several.causes == one.causes and several.bounds == one.bounds
-    for k in ("end", "start", "flat"):
-        assert several.losses[k] == pytest.approx(one.losses[k], rel=1e-9)
+    assert several.bounds == one.bounds
+    # the causes read alike; their figures (σ, bias: rounded to whole pixels) agree to rounding
+    number = r"\d+(?:\.\d+)?"
+    assert [re.sub(number, "#", c) for c in several.causes] == [re.sub(number, "#", c) for c in one.causes]
+    for a, b in zip(several.causes, one.causes):
+        np.testing.assert_allclose([float(x) for x in re.findall(number, a)], [float(x) for x in re.findall(number, b)],
+                                   rtol=1e-3, atol=1)
+    for k in ("end", "start", "flat"):  # float32 renders of two programs: they round alike to a few 1e-8
+        assert several.losses[k] == pytest.approx(one.losses[k], rel=1e-6)
     assert one.losses["start"] != one.losses["end"]
     assert [s["index"] for s in several.spheres] == [s["index"] for s in one.spheres] == [0, 1]
     for a, b in zip(several.spheres, one.spheres):  # σ and bias: float32 Jacobians of two programs, solved
-        assert a["moved_px"] == b["moved_px"]
-        np.testing.assert_allclose([a["sigma_px"], a["bias_px"]], [b["sigma_px"], b["bias_px"]], rtol=1e-4)
+        assert a["moved_px"] == b["moved_px"]  # where depth is all but undetermined (σ of hundreds of px)
+        np.testing.assert_allclose([a["sigma_px"], a["bias_px"]], [b["sigma_px"], b["bias_px"]], rtol=1e-3)
