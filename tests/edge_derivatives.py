@@ -34,11 +34,17 @@ def scene(name: str) -> rtjax.Scene:
     return rtjax.parse_deck(DECKS[name][0]).frames[0].scene.astype(jnp.float64)
 
 
+def scene_parameters(name: str, s: rtjax.Scene) -> list[tuple]:
+    """`edge_scenes.parameters` of scene `name` as `s` sets it up."""
+    p = s.params
+    return parameters(name, np.asarray(p.eye), np.asarray(p.refp), float(p.vang[0]), s.structure.width,
+                      np.asarray(p.centers))
+
+
 def varied(name: str, s: rtjax.Scene):
     """A function v ↦ scene with the parameters of `edge_scenes.parameters` moved by v."""
     p = s.params
-    params = parameters(name, np.asarray(p.eye), np.asarray(p.refp), float(p.vang[0]), s.structure.width,
-                        np.asarray(p.centers))
+    params = scene_parameters(name, s)
 
     def at(v):
         c, r, light, eye = p.centers, p.radii, p.light_dirs, p.eye
@@ -78,9 +84,7 @@ def own_differences(name: str, step: float, edges: float = 1.0, subdivide: bool 
     wherever no discrete choice (an edge, a hit) changes within the step."""
     s = scene(name)
     at, n = varied(name, s)
-    p = s.params
-    sizes = [q[4] for q in parameters(name, np.asarray(p.eye), np.asarray(p.refp), float(p.vang[0]), s.structure.width,
-                                      np.asarray(p.centers))]
+    sizes = [q[4] for q in scene_parameters(name, s)]
     f = jax.jit(lambda v: rtjax.render(at(v), depth=DECKS[name][1], edges=edges, subdivide=subdivide))
     out = []
     for i, size in enumerate(sizes):
