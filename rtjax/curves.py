@@ -1,13 +1,14 @@
 """Intersection curves of spheres that cut into one another, as edges of the silhouette
 mode's box filter.
 
-Where sphere E cuts into the sphere H a ray meets, the nearest hit switches from H to E
-along the curve t_E = t_H (near roots), which is not an outline: the silhouette search
-(`edges.EdgeWatch`) does not see it. Across it the colour jumps like across a silhouette,
-so it is box-filtered the same way: its signed distance δ = (t_E − t_H)/|∇(t_E − t_H)|
-in sample steps (positive on H's side), the rate from the ray differentials, the sides
-traced with H removed (E's side) and with E removed (H's side).
-"""
+Where the surface of a sphere E cuts that of the sphere H a ray meets, the nearest hit
+switches from H to E where the hit lies on E: a curve that is not an outline, so the
+silhouette search (`edges.EdgeWatch`) does not see it. Across it the colour jumps like
+across a silhouette, so it is box-filtered the same way: its signed distance δ = s/|∇s|
+in sample steps, s the hit's distance from E's surface (positive on H's side), the rate
+from the ray differentials, the sides traced with H removed (E's side) and with E
+removed (H's side). The hit may enter H or leave it, the ray be outside E or inside it
+(glass)."""
 
 from __future__ import annotations
 
@@ -16,46 +17,54 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from . import spheres
-from .numerics import dot, safe_div, safe_sqrt, tiny
+from .numerics import dot, norm, normalize, safe_div, safe_sqrt, tiny
 
 
-def entry(o, d, c, r):
-    """Distance t to the near root of rays (o, d) (unit d) on spheres (c, r), and the
-    outward normal there; broadcasts over (3, ...) and (...)."""
+def inside(b, f2, r2, is_origin):
+    """Whether rays are inside spheres, from b = f·d and f2 = |f|² (`spheres.offsets`):
+    |f| < r, or, on the sphere the ray leaves (`is_origin`), pointing inward (b < 0), as
+    `spheres.roots` decides it. Not differentiated (a discrete choice)."""
+    return jnp.where(is_origin, b < 0, f2 < r2)
+
+
+def root(o, d, c, r, far):
+    """Distance t to the near root (or, where `far`, the far root) of rays (o, d) (unit
+    d) on spheres (c, r), and the outward normal there; broadcasts over (3, ...) and (...)."""
     f, b, l = spheres.offsets(o, d, c)
     dtype = jnp.result_type(o)
     disc = r**2 - dot(l, l)
-    sq = safe_sqrt(disc, jnp.asarray(tiny(dtype), dtype))
-    t = -b - sq
-    return t, (l - sq * d) / r
+    sq = jnp.where(far, 1, -1) * safe_sqrt(disc, jnp.asarray(tiny(dtype), dtype))
+    return -b + sq, (l + sq * d) / r
 
 
-def entry_rate(normal, t, d, do, dd):
-    """∂t per sample step of a ray's hit at distance t with outward `normal`, the ray
-    moving by (∂o, ∂d): −N·(∂o + t·∂d)/(N·d)."""
-    return -safe_div(dot(normal, do + t * dd), dot(normal, d))
-
-
-def curve_terms(o, d, diff, ce, re, ch, rh):
+def curve_terms(o, d, diff, ce, re, ch, rh, in_e, in_h):
     """Signed distance δ (sample steps, > 0 on H's side) from rays to the curve where
-    sphere E (ce, re) cuts into H (ch, rh), and the curve's normal (nx, ny) in the image.
-    δ and the normal are differentiable in the scene, the rate included: off the curve
-    (δ ≠ 0, within the box) δ moves with it."""
-    te, ne = entry(o, d, ce, re)
-    th, nh = entry(o, d, ch, rh)
-    ox, dx, oy, dy = diff
-    gx = entry_rate(ne, te, d, ox, dx) - entry_rate(nh, th, d, ox, dx)
-    gy = entry_rate(ne, te, d, oy, dy) - entry_rate(nh, th, d, oy, dy)
+    sphere E (ce, re) cuts into H (ch, rh), and the curve's normal (nx, ny) in the image;
+    `in_e`, `in_h`: whether the rays are inside E and H (`inside`).
+
+    The curve is the zero set of s = ±(|P − c_E| − r_E), P the ray's hit on H (its far
+    root from inside H), the sign − from inside E: s is the hit's distance from E's
+    surface, > 0 where H is met first, and smooth wherever H is met (unlike t_E − t_H,
+    whose rate has no bound where the ray grazes E). δ = s/|∇s|, ∇s from the ray
+    differentials; differentiable in the scene, the rate included: off the curve (δ ≠ 0,
+    within the box) δ moves with it."""
+    th, nh = root(o, d, ch, rh, in_h)
+    sign = jnp.where(in_e, -1, 1)
+    u = o + th * d - ce
+    s = sign * (norm(u) - re)
+    ne = sign * normalize(u)
+    gx, gy = (dot(ne, spheres.surface_motion(nh, th, d, ~in_h, do, dd)) for do, dd in (diff[:2], diff[2:]))
     floor = jnp.asarray(tiny(jnp.result_type(o)), jnp.result_type(o))
     norm_ = safe_sqrt(gx**2 + gy**2, floor)
-    return safe_div(te - th, norm_), safe_div(gx, norm_), safe_div(gy, norm_)
+    return safe_div(s, norm_), safe_div(gx, norm_), safe_div(gy, norm_)
 
 
-def nearest_curve(o, d, diff, live, hit: spheres.Hit, tab: spheres.Table, centers, radii,
+def nearest_curve(o, d, diff, origin, live, hit: spheres.Hit, tab: spheres.Table, centers, radii,
                   width) -> tuple[Float[Array, " p"], Int[Array, " p"]]:
-    """Per ray that enters a sphere H (its hit, from outside): among the spheres E that
-    cut into H and that the ray enters next, the one whose curve with H is nearest, within
-    `width` sample steps: its distance (inf: none) and index (−1). Without derivatives."""
+    """Per ray that meets a sphere H (its hit, entering or leaving it): among the spheres
+    E whose surfaces cut H's, the one whose curve with H is nearest (`curve_terms`' δ),
+    within `width` sample steps: its distance (inf: none) and index (−1); `origin`, the
+    sphere each ray leaves (or −1). Without derivatives."""
     sg = jax.lax.stop_gradient
     o, d, centers, radii = sg((o, d, centers, radii))
     ox, dx, oy, dy = sg(tuple(diff))
@@ -63,21 +72,20 @@ def nearest_curve(o, d, diff, live, hit: spheres.Hit, tab: spheres.Table, center
     k = jnp.arange(n)[:, None]
     h = jnp.maximum(hit.index, 0)
     r = radii[:, None]
-    disc = r**2 - tab.l2
-    tk = -tab.b - jnp.sqrt(jnp.maximum(disc, 0))
-    th = sg(hit.t)[None, :]
+    rh = radii[h][None, :]
+    th = sg(hit.t)
     gap = sum((centers[:, None, i] - centers[h][None, :, i]) ** 2 for i in range(3))  # no reduction over 3
-    cuts = gap < (r + radii[h][None, :]) ** 2
-    ok = (live & hit.found & hit.entering)[None, :] & (k != hit.index[None, :]) & (tab.f2 > r**2) & (disc > 0)
-    ok = ok & (tk >= th) & cuts
-    normal = (o[:, None, :] + tk[None] * d[:, None, :] - centers.T[:, :, None]) / r[None]
+    cuts = (gap < (r + rh) ** 2) & (gap > (r - rh) ** 2)
+    ok = (live & hit.found)[None, :] & (k != hit.index[None, :]) & cuts
+    sign = jnp.where(inside(tab.b, tab.f2, r**2, origin[None, :] == k), -1, 1)
+    u = (o + th * d)[:, None, :] - centers.T[:, :, None]
+    dist = jnp.sqrt(jnp.maximum(dot(u, u), tiny(o.dtype)))
     nh = sg(hit.normal_out)
-    thx, thy = entry_rate(nh, th[0], d, ox, dx), entry_rate(nh, th[0], d, oy, dy)
-    gx = entry_rate(normal, tk, d[:, None, :], ox[:, None, :], dx[:, None, :]) - thx[None, :]
-    gy = entry_rate(normal, tk, d[:, None, :], oy[:, None, :], dy[:, None, :]) - thy[None, :]
+    gx, gy = (dot(u / dist, spheres.surface_motion(nh, th, d, hit.entering, do, dd)[:, None, :])
+              for do, dd in ((ox, dx), (oy, dy)))
     floor = jnp.asarray(tiny(o.dtype), o.dtype)
-    delta = (tk - th) / jnp.sqrt(jnp.maximum(gx**2 + gy**2, floor))
-    score = jnp.where(ok & (delta < width), delta, jnp.inf)
+    delta = sign * (dist - r) / jnp.sqrt(jnp.maximum(gx**2 + gy**2, floor))
+    score = jnp.where(ok & (jnp.abs(delta) < width), jnp.abs(delta), jnp.inf)
     idx = jnp.argmin(score, axis=0)
     best = jnp.take_along_axis(score, idx[None], axis=0)[0]
     return best, jnp.where(jnp.isfinite(best), idx, -1).astype(jnp.int32)

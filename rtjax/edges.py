@@ -110,25 +110,11 @@ class Motion(NamedTuple):
     y: Float[Array, "3 p"]
 
 
-#: Smallest |N·d| used for a hit's motion: at grazing incidence the motion is unbounded.
-MIN_INCIDENCE = 0.05
-
-
 def hit_motion(hit: spheres.Hit, o, d, diff: Differentials) -> Motion:
-    """How the hit point moves per sample step: ∂P = ∂o + t·∂d + ∂t·d on the surface,
-    ∂t = −N·(∂o + t·∂d)/(N·d), with |N·d| floored at `MIN_INCIDENCE`; differentiable in
-    the scene, as the differentials are (see `trace.segment`). N·d's sign is
-    the hit's side (negative entering, else positive), not N·d's own, which is
-    rounding alone at a grazing hit (the silhouette mode's forced ones)."""
-    normal, t = hit.normal_out, hit.t
-    nd = dot(normal, d)
-    nd = jnp.where(hit.entering, jnp.minimum(nd, -MIN_INCIDENCE), jnp.maximum(nd, MIN_INCIDENCE))
-
-    def move(do, dd):
-        v = do + t * dd
-        return v - spread(dot(normal, v) / nd) * d
-
-    return Motion(move(diff.ox, diff.dx), move(diff.oy, diff.dy))
+    """How the hit point moves per sample step (`spheres.surface_motion`), across and
+    down; differentiable in the scene, as the differentials are (see `trace.segment`)."""
+    return Motion(*(spheres.surface_motion(hit.normal_out, hit.t, d, hit.entering, do, dd)
+                    for do, dd in ((diff.ox, diff.dx), (diff.oy, diff.dy))))
 
 
 def edge_terms(o, d, ox, dx, oy, dy, c, r):
@@ -390,8 +376,8 @@ class EdgeWatch:
         edge = jnp.where(jnp.isfinite(score), edge, -1)
         here = Best(score, edge, hit.index == edge, rays, jnp.full_like(edge, -1))
         if self.curves:
-            cscore, cedge = curves.nearest_curve(rays.o, rays.d, rays.diff, rays.weight > 0, hit, tab, self.centers,
-                                                 self.radii, self.width)
+            cscore, cedge = curves.nearest_curve(rays.o, rays.d, rays.diff, rays.origin, rays.weight > 0, hit, tab,
+                                                 self.centers, self.radii, self.width)
             nearer = cscore < score
             here = Best(jnp.where(nearer, cscore, score), jnp.where(nearer, cedge, edge), here.on_hit & ~nearer, rays,
                         jnp.where(nearer, hit.index, -1))
@@ -459,6 +445,12 @@ def _chosen_or_met(edge, o, d, centers, radii):
     return c, r
 
 
+def _inside(rays, c, r, k):
+    """`curves.inside` for each ray's sphere (c, r), sphere `k` (−1: a stand-in)."""
+    f, b, _ = spheres.offsets(*jax.lax.stop_gradient((rays.o, rays.d, c)))
+    return curves.inside(b, dot(f, f), jax.lax.stop_gradient(r) ** 2, (rays.origin == k) & (k >= 0))
+
+
 def primary_sides(best: Best, primary, centers, radii, width) -> Sides:
     """The box mode's sides: coverage α and the rays through the centroids of the inside
     and outside parts of the pixel's box, taken from the eye: the primary rays (o, d,
@@ -478,7 +470,8 @@ def primary_sides(best: Best, primary, centers, radii, width) -> Sides:
     met = jnp.where(curve, best.edge, -1)
     ce, re = _chosen_or_met(met, r0.o, r0.d, centers, radii)
     ch, rh = _chosen_or_met(jnp.where(curve, best.partner, -1), r0.o, r0.d, centers, radii)
-    cd, cx, cy = curves.curve_terms(r0.o, r0.d, r0.diff, ce, re, ch, rh)
+    in_e, in_h = (_inside(r0, c_, r_, k) for c_, r_, k in ((ce, re, met), (ch, rh, best.partner)))
+    cd, cx, cy = curves.curve_terms(r0.o, r0.d, r0.diff, ce, re, ch, rh, in_e, in_h)
     delta, nx, ny = (jnp.where(curve, a, b) for a, b in ((cd, delta), (cx, nx), (cy, ny)))
     alpha, z_in, z_out = split_box(-delta / width, nx, ny)
     return Sides(best.edge, alpha, -delta / width, *offset_rays(o, d, df, z_in, width, nx, ny),

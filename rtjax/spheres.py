@@ -54,6 +54,22 @@ def offsets(o, d, c):
     return f, b, f - spread(b) * d
 
 
+#: Smallest |N·d| used for a hit's motion: at grazing incidence the motion is unbounded.
+MIN_INCIDENCE = 0.05
+
+
+def surface_motion(normal, t, d, entering, do, dd):
+    """How a ray's hit P = o + t·d on a surface with outward `normal` moves as the ray
+    moves by (∂o, ∂d): ∂P = ∂o + t·∂d + ∂t·d, ∂t = −N·(∂o + t·∂d)/(N·d), with |N·d|
+    floored at `MIN_INCIDENCE`. N·d's sign is the hit's side (negative `entering`, else
+    positive), not N·d's own, which is rounding alone at a grazing hit (the silhouette
+    mode's forced ones)."""
+    nd = dot(normal, d)
+    nd = jnp.where(entering, jnp.minimum(nd, -MIN_INCIDENCE), jnp.maximum(nd, MIN_INCIDENCE))
+    v = do + t * dd
+    return v - spread(dot(normal, v) / nd) * d
+
+
 class Roots(NamedTuple):
     """Both roots of rays against spheres, and whether each may be used."""
 
