@@ -76,8 +76,12 @@ def nearest_curve(o, d, diff, origin, live, hit: spheres.Hit, tab: spheres.Table
     th = sg(hit.t)
     gap = sum((centers[:, None, i] - centers[h][None, :, i]) ** 2 for i in range(3))  # no reduction over 3
     cuts = (gap < (r + rh) ** 2) & (gap > (r - rh) ** 2)
-    ok = (live & hit.found)[None, :] & (k != hit.index[None, :]) & cuts
-    sign = jnp.where(inside(tab.b, tab.f2, r**2, origin[None, :] == k), -1, 1)
+    leaves = origin[None, :] == k
+    within = inside(tab.b, tab.f2, r**2, leaves)
+    # a ray leaving E outward: the curve it would see near its origin is the previous
+    # segment's, where the ray met E (or H from inside E) there
+    ok = (live & hit.found)[None, :] & (k != hit.index[None, :]) & cuts & (within | ~leaves)
+    sign = jnp.where(within, -1, 1)
     u = (o + th * d)[:, None, :] - centers.T[:, :, None]
     dist = jnp.sqrt(jnp.maximum(dot(u, u), tiny(o.dtype)))
     nh = sg(hit.normal_out)
