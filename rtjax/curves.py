@@ -81,15 +81,14 @@ def nearest_curve(o, d, diff, origin, live, hit: spheres.Hit, tab: spheres.Table
     # a ray leaving E outward: the curve it would see near its origin is the previous
     # segment's, where the ray met E (or H from inside E) there
     ok = (live & hit.found)[None, :] & (k != hit.index[None, :]) & cuts & (within | ~leaves)
-    sign = jnp.where(within, -1, 1)
     u = (o + th * d)[:, None, :] - centers.T[:, :, None]
     dist = jnp.sqrt(jnp.maximum(dot(u, u), tiny(o.dtype)))
     nh = sg(hit.normal_out)
     gx, gy = (dot(u / dist, spheres.surface_motion(nh, th, d, hit.entering, do, dd)[:, None, :])
               for do, dd in ((ox, dx), (oy, dy)))
     floor = jnp.asarray(tiny(o.dtype), o.dtype)
-    delta = sign * (dist - r) / jnp.sqrt(jnp.maximum(gx**2 + gy**2, floor))
-    score = jnp.where(ok & (jnp.abs(delta) < width), jnp.abs(delta), jnp.inf)
+    delta = jnp.abs(dist - r) / jnp.sqrt(jnp.maximum(gx**2 + gy**2, floor))  # |s|/|∇s|: s's sign is the side
+    score = jnp.where(ok & (delta < width), delta, jnp.inf)
     idx = jnp.argmin(score, axis=0)
     best = jnp.take_along_axis(score, idx[None], axis=0)[0]
     return best, jnp.where(jnp.isfinite(best), idx, -1).astype(jnp.int32)
