@@ -27,28 +27,21 @@ def inside(b, f2, r2, is_origin):
     return jnp.where(is_origin, b < 0, f2 < r2)
 
 
-def root(o, d, c, r, far):
-    """Distance t to the near root (or, where `far`, the far root) of rays (o, d) (unit
-    d) on spheres (c, r), and the outward normal there; broadcasts over (3, ...) and (...)."""
-    f, b, l = spheres.offsets(o, d, c)
-    dtype = jnp.result_type(o)
-    disc = r**2 - dot(l, l)
-    sq = jnp.where(far, 1, -1) * safe_sqrt(disc, jnp.asarray(tiny(dtype), dtype))
-    return -b + sq, (l + sq * d) / r
-
-
 def curve_terms(o, d, diff, ce, re, ch, rh, in_e, in_h):
     """Signed distance δ (sample steps, > 0 on H's side) from rays to the curve where
     sphere E (ce, re) cuts into H (ch, rh), and the curve's normal (nx, ny) in the image;
     `in_e`, `in_h`: whether the rays are inside E and H (`inside`).
 
     The curve is the zero set of s = ±(|P − c_E| − r_E), P the ray's hit on H (its far
-    root from inside H), the sign − from inside E: s is the hit's distance from E's
-    surface, > 0 where H is met first, and smooth wherever H is met (unlike t_E − t_H,
-    whose rate has no bound where the ray grazes E). δ = s/|∇s|, ∇s from the ray
+    root from inside H; `spheres.root_at`), the sign − from inside E: s is the hit's
+    distance from E's surface, > 0 where H is met first, and smooth wherever H is met
+    (unlike t_E − t_H, whose rate has no bound where the ray grazes E). δ = s/|∇s|, ∇s from the ray
     differentials; differentiable in the scene, the rate included: off the curve (δ ≠ 0,
     within the box) δ moves with it."""
-    th, nh = root(o, d, ch, rh, in_h)
+    _, b, l = spheres.offsets(o, d, ch)
+    dtype = jnp.result_type(o)
+    sq = safe_sqrt(rh**2 - dot(l, l), jnp.asarray(tiny(dtype), dtype))
+    th, nh = spheres.root_at(b, l, sq, d, rh, in_h)
     sign = jnp.where(in_e, -1, 1)
     u = o + th * d - ce
     s = sign * (norm(u) - re)

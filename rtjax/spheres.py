@@ -209,6 +209,14 @@ def sphere_geometry(o, d, c, r):
     return b, l, sq
 
 
+def root_at(b, l, sq, d, r, far):
+    """The root t = −b ∓ √disc of rays (unit d) on spheres (the far one, +, where `far`)
+    and the outward normal there, (l ± √disc·d)/r, from `sphere_geometry`'s b, l, √disc:
+    accurate far from the origin (no o + t·d − c cancellation)."""
+    s = jnp.where(far, 1, -1).astype(b.dtype) * sq
+    return -b + s, (l + spread(s) * d) / spread(r)
+
+
 class Toggles(NamedTuple):
     """How the silhouette mode alters a segment's hits, per ray (a sphere index or −1 for
     none): `exclude` removes that sphere; `force` makes the ray see it (see `Hit`).
@@ -262,11 +270,9 @@ def nearest_hit(o, d, centers, radii, origin, tmin, cull: bool, toggles: Toggles
     if toggles is not None:
         forced = (toggles.force >= 0) & (~found | (idx != toggles.force))
         found, idx, far = found | forced, jnp.where(forced, toggles.force, idx), far & ~forced
-    sign = jnp.where(far, 1, -1).astype(o.dtype)
     c, r = take_rows(centers, idx), lookup(radii, idx)
     b, l, sq = sphere_geometry(o, d, c, r)
-    t = -b + sign * sq
-    normal = (l + spread(sign * sq) * d) / spread(r)
+    t, normal = root_at(b, l, sq, d, r, far)
     point = o + spread(t) * d
     if toggles is not None:
         t = jnp.where(forced, -b, t)
