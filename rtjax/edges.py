@@ -110,7 +110,7 @@ class Motion(NamedTuple):
     y: Float[Array, "3 p"]
 
 
-def hit_motion(hit: spheres.Hit, o, d, diff: Differentials) -> Motion:
+def hit_motion(hit: spheres.Hit, d, diff: Differentials) -> Motion:
     """How the hit point moves per sample step (`spheres.surface_motion`), across and
     down; differentiable in the scene, as the differentials are (see `trace.segment`)."""
     return Motion(*(spheres.surface_motion(hit.normal_out, hit.t, d, hit.entering, do, dd)

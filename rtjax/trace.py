@@ -229,7 +229,7 @@ def segment(s: Structure, p: Params, m: Material, rays: Rays, depth: int, mode: 
                               None if toggles is None else toggles.at(rays.level), active)
     entering = hit.entering
     n = jnp.where(entering, hit.normal_out, -hit.normal_out)
-    motion = None if rays.diff is None else edges.hit_motion(hit, o, d, rays.diff)
+    motion = None if rays.diff is None else edges.hit_motion(hit, d, rays.diff)
     shade = shade_hit(s, p, m, hit, n, -d, mode, motion, width, rays.level == 0)
     key = rays.key if rays.key is None else hit_key(rays.key, hit, shade.visibility, active)
     flip = rays.flip
