@@ -6,14 +6,17 @@ parameters of `tests/edge_scenes.py`, written to `tests/data/edges_yardstick.npz
 
 For each scene: the supersampled image (`image`, 16 × 16), and the finite-difference
 derivative images (P, H, W, 3) at 16 × 16 samples with steps of 0.3 and 0.6 px of image
-motion (`fd16_0.3`, `fd16_0.6`) and at 24 × 24 with 0.3 px (`fd24_0.3`, the confirming
-yardstick), stored as float32. About 15 minutes on one core.
+motion (`fd16_0.3`, `fd16_0.6`), at 24 × 24 with 0.3 px (`fd24_0.3`, confirming them),
+and the fine ones (`edge_scenes.FINE`): 64 × 64 with 0.04 px (`fd64_0.04`) and 48 × 48
+with 0.05 px (`fd48_0.05`, confirming it), stored as float32. About 35 minutes on one
+core; `--only KEY,...` recomputes some of them, the others kept.
 
-    python scripts/edges_yardstick.py [SCENE ...]
+    python scripts/edges_yardstick.py [--only KEY,...] [--out PATH] [SCENE ...]
 """
 
 from __future__ import annotations
 
+import argparse
 import copy
 import os
 import sys
@@ -24,7 +27,7 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "tests"))
 
-from edge_scenes import DECKS, SPP, SPP_CONFIRM, STEPS, parameters  # noqa: E402
+from edge_scenes import DECKS, FINE, SPP, SPP_CONFIRM, STEPS, parameters  # noqa: E402
 
 from rtjax import reference  # noqa: E402
 
@@ -48,33 +51,47 @@ def moved(frame: reference.Frame, what: str, index: int, axis: int, h: float) ->
     return f
 
 
-def yardstick(name: str) -> dict[str, np.ndarray]:
+#: Every stored finite difference, (k, step in px), named fd{k}_{step}.
+ALL = tuple((spp, step) for spp, steps in ((SPP, STEPS), (SPP_CONFIRM, STEPS[:1])) for step in steps) + FINE
+
+
+def key(spp: int, step: float) -> str:
+    return f"fd{spp}_{step}"
+
+
+def yardstick(name: str, which=ALL) -> dict[str, np.ndarray]:
+    """Scene `name`'s image and its finite differences for each (k, step) of `which`."""
     text, depth = DECKS[name]
     frame = reference.parse_deck_text(text)[0]
     centers = [s["center"] for s in frame.spheres]
     params = parameters(name, frame.eye, frame.refp, frame.ha, frame.size, centers)
     out = {"image": reference.render_reference(frame, depth=depth, spp=SPP).astype(np.float32)}
-    for spp, steps in ((SPP, STEPS), (SPP_CONFIRM, STEPS[:1])):
-        for step in steps:
-            fd = []
-            for label, what, index, axis, size in params:
-                h = step * size
-                up, down = (reference.render_reference(moved(frame, what, index, axis, s * h), depth=depth, spp=spp)
-                            for s in (1, -1))
-                fd.append((up - down) / (2 * h))
-            out[f"fd{spp}_{step}"] = np.asarray(fd, np.float32)
-            print(f"{name} {spp}x{spp} step {step}: {time.strftime('%H:%M:%S')}", flush=True)
+    for spp, step in which:
+        fd = []
+        for label, what, index, axis, size in params:
+            h = step * size
+            up, down = (reference.render_reference(moved(frame, what, index, axis, s * h), depth=depth, spp=spp)
+                        for s in (1, -1))
+            fd.append((up - down) / (2 * h))
+        out[key(spp, step)] = np.asarray(fd, np.float32)
+        print(f"{name} {spp}x{spp} step {step}: {time.strftime('%H:%M:%S')}", flush=True)
     out["names"] = np.array([p[0] for p in params])
     return out
 
 
-def main(names: list[str]) -> None:
-    stored = dict(np.load(OUT)) if os.path.exists(OUT) else {}
-    for name in names or list(DECKS):
-        for key, value in yardstick(name).items():
-            stored[f"{name}/{key}"] = value
-        np.savez_compressed(OUT, **stored)
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("scenes", nargs="*")
+    ap.add_argument("--only", help="comma-separated keys (e.g. fd64_0.04) to recompute; the others are kept")
+    ap.add_argument("--out", default=OUT)
+    args = ap.parse_args()
+    which = ALL if args.only is None else [c for c in ALL if key(*c) in args.only.split(",")]
+    stored = dict(np.load(args.out)) if os.path.exists(args.out) else {}
+    for name in args.scenes or list(DECKS):
+        for k, value in yardstick(name, which).items():
+            stored[f"{name}/{k}"] = value
+        np.savez_compressed(args.out, **stored)
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    main()

@@ -13,14 +13,21 @@ import jax.numpy as jnp
 import numpy as np
 
 import rtjax
-from edge_scenes import DECKS, parameters
+from edge_scenes import DECKS, FINE, parameters
 
 YARDSTICK = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data", "edges_yardstick.npz")
 
 
+#: The stored finite differences: the fine ones (`edge_scenes.FINE`, the finest first) and
+#: the coarse ones, whose steps of 0.3–0.6 px average the derivative where edges crowd.
+FINE_KEYS = tuple(f"fd{k}_{step}" for k, step in FINE)
+COARSE_KEYS = ("fd16_0.3", "fd16_0.6", "fd24_0.3")
+
+
 @functools.lru_cache(maxsize=None)
 def yardsticks(name: str) -> dict[str, np.ndarray]:
-    """The stored yardstick of scene `name`: image, fd16_0.3, fd16_0.6, fd24_0.3, names."""
+    """The stored yardstick of scene `name`: image, names and the finite differences
+    named in FINE_KEYS and COARSE_KEYS."""
     with np.load(YARDSTICK) as data:
         return {k.split("/", 1)[1]: data[k] for k in data.files if k.startswith(name + "/")}
 
