@@ -43,16 +43,14 @@ def main() -> None:
         elapsed = time.time() - t
         print(f"== {name}  edges={args.edges} spp={args.spp} subdivide={args.subdivide}  ({elapsed:.0f} s)  mean |image − ss| = "
               f"{np.abs(image - ys['image']).mean():.3f}")
-        for key in [k for k in ys if k.startswith("fd")]:
+        for key in FINE_KEYS + COARSE_KEYS:
             print(f"  vs {key}: " + compare(jac, ys[key], ys["names"]).summary())
         for which, keys in (("fine", FINE_KEYS), ("coarse", COARSE_KEYS)):
-            cs = [compare(jac, ys[k], ys["names"]) for k in keys if k in ys]
-            if cs:
-                print(f"  over the {which} yardsticks: cos ≥ {min(c.cosine for c in cs):.4f}, median ≤ "
-                      f"{max(c.median for c in cs) * 100:.1f} %, pixel cos ≥ {min(c.pixel_cosines.min() for c in cs):.3f}")
-        ref = ys[FINE_KEYS[0]] if FINE_KEYS[0] in ys else ys["fd16_0.3"]
-        for key in [k for k in ys if k.startswith("fd") and ys[k] is not ref]:
-            print(f"  yardsticks {key} vs the finest: " + compare(ys[key], ref, ys["names"]).summary(short=True))
+            cs = [compare(jac, ys[k], ys["names"]) for k in keys]
+            print(f"  over the {which} yardsticks: cos ≥ {min(c.cosine for c in cs):.4f}, median ≤ "
+                  f"{max(c.median for c in cs) * 100:.1f} %, pixel cos ≥ {min(c.pixel_cosines.min() for c in cs):.3f}")
+        for key in FINE_KEYS[1:] + COARSE_KEYS:
+            print(f"  yardstick {key} vs the finest: " + compare(ys[key], ys[FINE_KEYS[0]], ys["names"]).summary(short=True))
 
 
 if __name__ == "__main__":

@@ -27,7 +27,7 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "tests"))
 
-from edge_scenes import DECKS, FINE, SPP, SPP_CONFIRM, STEPS, parameters  # noqa: E402
+from edge_scenes import COARSE, DECKS, FINE, SPP, parameters, yardstick_key  # noqa: E402
 
 from rtjax import reference  # noqa: E402
 
@@ -51,15 +51,7 @@ def moved(frame: reference.Frame, what: str, index: int, axis: int, h: float) ->
     return f
 
 
-#: Every stored finite difference, (k, step in px), named fd{k}_{step}.
-ALL = tuple((spp, step) for spp, steps in ((SPP, STEPS), (SPP_CONFIRM, STEPS[:1])) for step in steps) + FINE
-
-
-def key(spp: int, step: float) -> str:
-    return f"fd{spp}_{step}"
-
-
-def yardstick(name: str, which=ALL) -> dict[str, np.ndarray]:
+def yardstick(name: str, which=COARSE + FINE) -> dict[str, np.ndarray]:
     """Scene `name`'s image and its finite differences for each (k, step) of `which`."""
     text, depth = DECKS[name]
     frame = reference.parse_deck_text(text)[0]
@@ -73,7 +65,7 @@ def yardstick(name: str, which=ALL) -> dict[str, np.ndarray]:
             up, down = (reference.render_reference(moved(frame, what, index, axis, s * h), depth=depth, spp=spp)
                         for s in (1, -1))
             fd.append((up - down) / (2 * h))
-        out[key(spp, step)] = np.asarray(fd, np.float32)
+        out[yardstick_key(spp, step)] = np.asarray(fd, np.float32)
         print(f"{name} {spp}x{spp} step {step}: {time.strftime('%H:%M:%S')}", flush=True)
     out["names"] = np.array([p[0] for p in params])
     return out
@@ -85,7 +77,9 @@ def main() -> None:
     ap.add_argument("--only", help="comma-separated keys (e.g. fd64_0.04) to recompute; the others are kept")
     ap.add_argument("--out", default=OUT)
     args = ap.parse_args()
-    which = ALL if args.only is None else [c for c in ALL if key(*c) in args.only.split(",")]
+    which = COARSE + FINE
+    if args.only is not None:
+        which = tuple(c for c in which if yardstick_key(*c) in args.only.split(","))
     stored = dict(np.load(args.out)) if os.path.exists(args.out) else {}
     for name in args.scenes or list(DECKS):
         for k, value in yardstick(name, which).items():

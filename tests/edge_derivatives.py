@@ -13,15 +13,14 @@ import jax.numpy as jnp
 import numpy as np
 
 import rtjax
-from edge_scenes import DECKS, FINE, parameters
+from edge_scenes import COARSE, DECKS, FINE, parameters, yardstick_key
 
 YARDSTICK = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data", "edges_yardstick.npz")
 
 
-#: The stored finite differences: the fine ones (`edge_scenes.FINE`, the finest first) and
-#: the coarse ones, whose steps of 0.3–0.6 px average the derivative where edges crowd.
-FINE_KEYS = tuple(f"fd{k}_{step}" for k, step in FINE)
-COARSE_KEYS = ("fd16_0.3", "fd16_0.6", "fd24_0.3")
+#: The stored finite differences' names: the fine ones (the finest first) and the coarse
+#: ones, whose steps of 0.3–0.6 px average the derivative where edges crowd.
+FINE_KEYS, COARSE_KEYS = (tuple(yardstick_key(*c) for c in cs) for cs in (FINE, COARSE))
 
 
 @functools.lru_cache(maxsize=None)

@@ -63,14 +63,19 @@ DECKS = {
     ),
 }
 
-#: Finite-difference steps, in pixels of image motion.
-STEPS = (0.3, 0.6)
-#: Samples per pixel (k × k) of the yardstick, and of the one that confirms it.
-SPP, SPP_CONFIRM = 16, 24
-#: The fine yardsticks, (k, step in px): a derivative image is the limit of small steps,
-#: and a step of 0.3 px still averages it where edges crowd (inside glass); the second
-#: confirms the first.
+#: Samples per pixel (k × k) of the stored supersampled image.
+SPP = 16
+#: The stored finite differences, (k × k samples a pixel, step in pixels of image
+#: motion). The fine ones, the finest first: a derivative image is the limit of small
+#: steps, and a step of 0.3 px still averages it where edges crowd (inside glass); the
+#: second confirms the first. The coarse ones: the issue's own measurement.
 FINE = ((64, 0.04), (48, 0.05))
+COARSE = ((16, 0.3), (16, 0.6), (24, 0.3))
+
+
+def yardstick_key(k: int, step: float) -> str:
+    """The stored name of the finite differences at k × k samples and `step` px."""
+    return f"fd{k}_{step}"
 
 
 def small_spheres(name: str) -> list[int]:
