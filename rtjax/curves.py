@@ -27,10 +27,11 @@ def inside(b, f2, r2, is_origin):
     return jnp.where(is_origin, b < 0, f2 < r2)
 
 
-def curve_terms(o, d, diff, ce, re, ch, rh, in_e, in_h):
+def curve_terms(o, d, diff, ce, re, ch, rh, leaves_e, leaves_h):
     """Signed distance δ (sample steps, > 0 on H's side) from rays to the curve where
     sphere E (ce, re) cuts into H (ch, rh), and the curve's normal (nx, ny) in the image;
-    `in_e`, `in_h`: whether the rays are inside E and H (`inside`).
+    `leaves_e`, `leaves_h`: whether each ray starts on E's or H's surface, leaving it
+    (which, with the ray's direction, says whether it is inside: `inside`).
 
     The curve is the zero set of s = ±(|P − c_E| − r_E), P the ray's hit on H (its far
     root from inside H; `spheres.root_at`), the sign − from inside E: s is the hit's
@@ -38,16 +39,20 @@ def curve_terms(o, d, diff, ce, re, ch, rh, in_e, in_h):
     (unlike t_E − t_H, whose rate has no bound where the ray grazes E). δ = s/|∇s|, ∇s from the ray
     differentials; differentiable in the scene, the rate included: off the curve (δ ≠ 0,
     within the box) δ moves with it."""
-    _, b, l = spheres.offsets(o, d, ch)
+    sg = jax.lax.stop_gradient
+    fh, b, l = spheres.offsets(o, d, ch)
+    fe, be, _ = spheres.offsets(*sg((o, d, ce)))
+    in_e = inside(be, dot(fe, fe), sg(re) ** 2, leaves_e)
+    in_h = inside(sg(b), sg(dot(fh, fh)), sg(rh) ** 2, leaves_h)
     dtype = jnp.result_type(o)
-    sq = safe_sqrt(rh**2 - dot(l, l), jnp.asarray(tiny(dtype), dtype))
+    floor = jnp.asarray(tiny(dtype), dtype)
+    sq = safe_sqrt(rh**2 - dot(l, l), floor)
     th, nh = spheres.root_at(b, l, sq, d, rh, in_h)
     sign = jnp.where(in_e, -1, 1)
     u = o + th * d - ce
     s = sign * (norm(u) - re)
     ne = sign * normalize(u)
     gx, gy = (dot(ne, spheres.surface_motion(nh, th, d, ~in_h, do, dd)) for do, dd in (diff[:2], diff[2:]))
-    floor = jnp.asarray(tiny(jnp.result_type(o)), jnp.result_type(o))
     norm_ = safe_sqrt(gx**2 + gy**2, floor)
     return safe_div(s, norm_), safe_div(gx, norm_), safe_div(gy, norm_)
 

@@ -445,12 +445,6 @@ def _chosen_or_met(edge, o, d, centers, radii):
     return c, r
 
 
-def _inside(rays, c, r, k):
-    """`curves.inside` for each ray's sphere (c, r), sphere `k` (−1: a stand-in)."""
-    f, b, _ = spheres.offsets(*jax.lax.stop_gradient((rays.o, rays.d, c)))
-    return curves.inside(b, dot(f, f), jax.lax.stop_gradient(r) ** 2, (rays.origin == k) & (k >= 0))
-
-
 def primary_sides(best: Best, primary, centers, radii, width) -> Sides:
     """The box mode's sides: coverage α and the rays through the centroids of the inside
     and outside parts of the pixel's box, taken from the eye: the primary rays (o, d,
@@ -470,8 +464,8 @@ def primary_sides(best: Best, primary, centers, radii, width) -> Sides:
     met = jnp.where(curve, best.edge, -1)
     ce, re = _chosen_or_met(met, r0.o, r0.d, centers, radii)
     ch, rh = _chosen_or_met(jnp.where(curve, best.partner, -1), r0.o, r0.d, centers, radii)
-    in_e, in_h = (_inside(r0, c_, r_, k) for c_, r_, k in ((ce, re, met), (ch, rh, best.partner)))
-    cd, cx, cy = curves.curve_terms(r0.o, r0.d, r0.diff, ce, re, ch, rh, in_e, in_h)
+    leaves_e, leaves_h = ((r0.origin == k) & (k >= 0) for k in (met, best.partner))
+    cd, cx, cy = curves.curve_terms(r0.o, r0.d, r0.diff, ce, re, ch, rh, leaves_e, leaves_h)
     delta, nx, ny = (jnp.where(curve, a, b) for a, b in ((cd, delta), (cx, nx), (cy, ny)))
     alpha, z_in, z_out = split_box(-delta / width, nx, ny)
     return Sides(best.edge, alpha, -delta / width, *offset_rays(o, d, df, z_in, width, nx, ny),

@@ -82,10 +82,10 @@ def deltas(spheres, inside, y0, window):
     ox[0], oy[2] = H_STEP, H_STEP
     pick = lambda a, b: np.where(hit == 0, a, b)  # noqa: E731
     (ch, rh), (ce, re) = ((np.asarray(c), r) for c, r in spheres)
-    met, other = ((pick(ch[:, None], ce[:, None]), pick(rh, re), pick(*inside)),
-                  (pick(ce[:, None], ch[:, None]), pick(re, rh), pick(inside[1], inside[0])))
+    met, other = (pick(ch[:, None], ce[:, None]), pick(rh, re)), (pick(ce[:, None], ch[:, None]), pick(re, rh))
+    on_neither = np.zeros(hit.shape, bool)  # the rays start on no sphere's surface: inside-ness is |f| < r
     delta = curves.curve_terms(*map(jnp.asarray, (o, d)), tuple(map(jnp.asarray, (ox, zero, oy, zero))),
-                               *map(jnp.asarray, (other[0], other[1], met[0], met[1], other[2], met[2])))[0]
+                               *map(jnp.asarray, (*other, *met, on_neither, on_neither)))[0]
     return np.asarray(delta), to_curve[within]
 
 
