@@ -65,6 +65,8 @@ def test_yardsticks_agree(name):
     for key in COARSE_KEYS:
         c = compare(ys[key], finest, ys["names"])
         assert c.cosine > 0.98, (key, c.summary())
+        c = compare(ys[key], ys[COARSE_KEYS[0]], ys["names"])
+        assert c.cosine > 0.99, (key, c.summary())
 
 
 # (scene) → (cosine over the spheres' parameters ≥, median relative error ≤, per-pixel
@@ -78,6 +80,15 @@ GOALS = {
     "tir": (0.999, 0.045, 0.985),  # subdivided: 0.9994, 2.1–3.9 %, 0.988 (sphere 1 z) (one box: 0.9983, 11.0–11.3 %, 0.945)
     "crowded": (0.988, 0.28, 0.74),  # one box: 0.9891, 26.3–26.8 %, 0.742 (mirror x) (subdivided: 0.9895, 22.0–25.9 %, 0.863)
 }
+# the same against the coarse yardsticks (the issue's own kind), whose per-pixel figures
+# their steps bound: measured heldout (subdivided) 0.9980, 8.3–12.0 %, 0.795; overlap
+# 0.9646, 9.9–15.6 %, 0.699; tir 0.9996, 1.8–2.8 %, 0.909; crowded 0.9889, 33.8–42.5 %, 0.721
+COARSE_GOALS = {
+    "heldout": (0.997, 0.16, 0.67),
+    "overlap": (0.96, 0.16, 0.69),
+    "tir": (0.999, 0.035, 0.90),
+    "crowded": (0.985, 0.44, 0.71),
+}
 
 
 @pytest.mark.slow
@@ -85,12 +96,13 @@ GOALS = {
 def test_derivatives_match_the_supersampled_reference(name):
     ys = yardsticks(name)
     image, jac = mode(name)
-    cos, rel, pix = GOALS[name]
-    for key in FINE_KEYS:
-        c = compare(jac, ys[key], ys["names"])
-        assert c.cosine >= cos, (key, c.summary())
-        assert c.median <= rel, (key, c.summary())
-        assert c.pixel_cosines.min() >= pix, (key, c.summary())
+    for keys, goals in ((FINE_KEYS, GOALS), (COARSE_KEYS, COARSE_GOALS)):
+        cos, rel, pix = goals[name]
+        for key in keys:
+            c = compare(jac, ys[key], ys["names"])
+            assert c.cosine >= cos, (key, c.summary())
+            assert c.median <= rel, (key, c.summary())
+            assert c.pixel_cosines.min() >= pix, (key, c.summary())
 
 
 @pytest.mark.slow
