@@ -17,7 +17,7 @@ import time
 from collections.abc import Iterator
 
 from .errors import DeckError, RtjaxError, shown
-from .render import MAX_EDGE_WIDTH
+from .render import MAX_EDGE_WIDTH, MAX_SUBDIVIDE
 from .xla import tune_cpu, use_compilation_cache
 
 #: Image sides beyond this need --allow-large (a typo like `size 40000` would take minutes and GBs).
@@ -42,6 +42,13 @@ def _positive_int(text: str) -> int:
 
 def _depth(text: str) -> int:
     return _int_at_least(text, 0, "a whole number ≥ 0", "a whole number ≥ 0")
+
+
+def _halvings(text: str) -> int:
+    value = _int_at_least(text, 0, "a whole number", "a whole number ≥ 0")
+    if value > MAX_SUBDIVIDE:
+        raise argparse.ArgumentTypeError(f"expected at most {MAX_SUBDIVIDE} halvings, found {text}")
+    return value
 
 
 def _positive_float(text: str) -> float:
@@ -123,9 +130,9 @@ def _start_distributed(args) -> None:
 
 def cmd_render(args) -> int:
     from .deck import load_deck
-    from .render import check_subdivide
+    from .render import resolve_subdivide
 
-    check_subdivide(args.edges, args.subdivide)  # before the deck is read: a usage error
+    resolve_subdivide(args.edges, args.subdivide)  # before the deck is read: a usage error
     deck = load_deck(args.deck)
     if not deck.frames:
         raise DeckError(deck.path, None, "the deck has no rend line: nothing to render")
@@ -370,8 +377,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="arithmetic precision (default float32)")
     r.add_argument("--edges", type=_edge_width, default=0.0, metavar="WIDTH",
                    help="silhouette-aware (antialiased, edge-differentiable) mode with this edge width in pixels (default 0: off)")
-    r.add_argument("--subdivide", action="store_true",
-                   help="with --edges: trace the edge pixels of mirrors and glass as 2x2 sub-boxes (see docs/EDGES.md)")
+    r.add_argument("--subdivide", type=_halvings, nargs="?", const=1, default=0, metavar="N",
+                   help="with --edges: trace the edge pixels of mirrors and glass as 2^N x 2^N sub-boxes "
+                        "(N = 1 without a value: 2x2; 2: 4x4; see docs/EDGES.md)")
     r.add_argument("--png", action="store_true", help="also write a PNG preview beside each Sun raster file")
     r.add_argument("--assignment-order", action="store_true",
                    help="write Sun raster pixels R,G,B as the assignment's code did (standard viewers swap red and blue)")

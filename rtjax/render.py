@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import operator
 
 import jax
 import jax.numpy as jnp
@@ -22,6 +23,8 @@ from .trace import BOX, LEVEL, PLAIN, SIDED, Mode, tiled, trace, trace_edges
 MAX_DEPTH = int(jnp.iinfo(LEVEL).max)
 #: The widest edge box the silhouette-aware mode takes, in pixels.
 MAX_EDGE_WIDTH = 16.0
+#: The most halvings of a box `subdivide` takes (8 × 8 sub-boxes).
+MAX_SUBDIVIDE = 3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -34,7 +37,7 @@ class Options:
     dtype: jnp.dtype  # float32 or float64
     edges: float  # the silhouette-aware mode's edge width in pixels (0: pixel centres)
     tile: int  # rays traced together
-    subdivide: bool = False  # the silhouette mode: 2 × 2 sub-boxes in pixels whose edge lies in or at a mirror or glass
+    subdivide: int = 0  # the silhouette mode: halvings of the box in the pixels of mirrors and glass
 
 
 def resolve_dtype(scene: Scene, dtype) -> jnp.dtype:
@@ -75,14 +78,22 @@ def default_tile() -> int:
     return 1 << 17 if jax.default_backend() == "cpu" else 1 << 20
 
 
-def check_subdivide(edges, subdivide: bool) -> None:
-    """A clear error for `subdivide` without the silhouette-aware mode (it divides that
-    mode's boxes)."""
-    if subdivide and isinstance(edges, (int, float)) and edges == 0:
+def resolve_subdivide(edges, subdivide: int | bool) -> int:
+    """`subdivide` as a count of halvings (True: 1, False: 0), or a clear error: a whole
+    number in [0, MAX_SUBDIVIDE], and none without the silhouette-aware mode (it divides
+    that mode's boxes)."""
+    try:
+        halvings = operator.index(subdivide)
+    except TypeError:
+        halvings = -1
+    if not 0 <= halvings <= MAX_SUBDIVIDE:
+        raise RtjaxError(f"subdivide (halvings of the box) must be a whole number in [0, {MAX_SUBDIVIDE}], not {subdivide!r}")
+    if halvings and isinstance(edges, (int, float)) and edges == 0:
         raise RtjaxError("subdivide needs the silhouette-aware mode (edges > 0)")
+    return halvings
 
 
-def resolve_options(scene: Scene, depth, spp, dtype, edges, tile, subdivide: bool = False) -> Options:
+def resolve_options(scene: Scene, depth, spp, dtype, edges, tile, subdivide: int | bool = 0) -> Options:
     """`render`'s options checked (a clear `RtjaxError` for a bad one) and resolved;
     `render_batch` and `render_frames` share them."""
     if int(spp) != spp or spp < 1:
@@ -90,9 +101,8 @@ def resolve_options(scene: Scene, depth, spp, dtype, edges, tile, subdivide: boo
     edges = float(edges)
     if not (0 <= edges <= MAX_EDGE_WIDTH):
         raise RtjaxError(f"edges (an edge width in pixels) must be in [0, {MAX_EDGE_WIDTH:g}], not {edges}")
-    check_subdivide(edges, subdivide)
     return Options(resolve_depth(scene.structure, depth), int(spp), resolve_dtype(scene, dtype), edges, resolve_tile(tile),
-                   bool(subdivide))
+                   resolve_subdivide(edges, subdivide))
 
 
 def render(
@@ -103,7 +113,7 @@ def render(
     dtype=None,
     edges: float = 0.0,
     tile: int | None = None,
-    subdivide: bool = False,
+    subdivide: int | bool = 0,
 ) -> Float[Array, "h w 3"]:
     """Render `scene` to an (H, W, 3) image in 0..255, clamped, not rounded.
 
@@ -118,9 +128,10 @@ def render(
       pixel centres. The mode is spent where edges are (`image_edges`).
     subdivide: with `edges`, the pixels whose edge is seen in a mirror or through glass (or
       is a mirror's or glass sphere's outline, or a shadow edge seen past one) are
-      box-filtered as the mean of 2 × 2 sub-boxes, each with its own nearest edge
-      (`trace.trace_edges`): derivatives far closer to the truth inside mirrors and
-      glass, at about twice the mode's cost (docs/EDGES.md).
+      box-filtered as the mean of k × k sub-boxes, k = 2^`subdivide` (1 or True: 2 × 2;
+      2: 4 × 4), each with its own nearest edge (`trace.trace_edges`): derivatives far
+      closer to the truth inside mirrors and glass, at about twice the mode's cost for
+      2 × 2 (docs/EDGES.md).
     tile: rays traced together (default: 2¹⁷ on a CPU, 2²⁰ on an accelerator); the
       image does not depend on it, only speed and memory do.
 
@@ -226,13 +237,13 @@ def _differentials(s: Structure, p: Params, xy, step):
 
 
 def colours_at(s: Structure, p: Params, xy, step, depth: int, tile: int, mode: Mode, width=0.0,
-               capacity: int | None = None, count=None, subdivide: bool = False) -> Float[Array, "3 k"]:
+               capacity: int | None = None, count=None, subdivide: int = 0) -> Float[Array, "3 k"]:
     """Clamped colours (3, K) seen through image positions xy (2, K) (pixels of the
     scene's image): at their centres (`PLAIN`) or box-filtered at edges (`BOX`), the
     box `width`·`step` pixels wide (`step`: the samples' spacing in pixels).
     `capacity`: the edge pixels pass 2 takes per `tile` (`trace.trace_edges`); `count`
     (traced): only the first `count` positions are wanted (`trace.tiled`); `subdivide`:
-    the box mode's 2 × 2 sub-boxes in mirrors and glass (`trace.trace_edges`)."""
+    the box mode's halvings of the box in mirrors and glass (`trace.trace_edges`)."""
     if mode == PLAIN:
         o, d = rays_through(p.eye, p.refp, p.vang, s.width, s.height, xy)
         return jnp.clip(tiled(lambda o, d: trace(s, p, o, d, depth).colour, tile, o, d), 0, 255)
@@ -260,7 +271,7 @@ def render_samples(
     edges: float = 0.0,
     dtype=None,
     tile: int | None = None,
-    subdivide: bool = False,
+    subdivide: int | bool = 0,
 ) -> Float[Array, "k 3"]:
     """Colours (K, 3) in 0..255 seen through K image positions `xy` (K, 2), in pixels of
     the scene's image ((i + ½, j + ½) is pixel (i, j)'s centre).
@@ -273,17 +284,17 @@ def render_samples(
     """
     dtype = resolve_dtype(scene, dtype)
     xy = check_positions(xy, dtype)
-    check_subdivide(edges, subdivide)
+    subdivide = resolve_subdivide(edges, subdivide)
     mode = PLAIN if isinstance(edges, (int, float)) and edges == 0 else BOX  # a traced width means the mode is on
     out = _render_samples(scene.params.astype(dtype), xy.T, jnp.asarray(step, dtype), jnp.asarray(edges, dtype),
                           scene.structure, resolve_depth(scene.structure, depth), resolve_tile(tile), mode,
-                          bool(subdivide))
+                          subdivide)
     return out.T
 
 
 @functools.partial(jax.jit, static_argnames=("structure", "depth", "tile", "mode", "subdivide"))
 def _render_samples(params: Params, xy, step, width, structure: Structure, depth: int, tile: int, mode: Mode,
-                    subdivide: bool = False):
+                    subdivide: int = 0):
     return colours_at(structure, params, xy, step, depth, tile, mode, width, subdivide=subdivide)
 
 

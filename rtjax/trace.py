@@ -389,7 +389,7 @@ def edge_capacity(n: int) -> int:
 
 
 def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth: int, width, mode: Mode,
-                capacity: int | None = None, subdivide: bool = False) -> edges.EdgeSamples:
+                capacity: int | None = None, subdivide: int = 0) -> edges.EdgeSamples:
     """The silhouette-aware trace of each pixel (box or sided `mode`), colours clamped.
 
     Pass 1 traces the chain with ray differentials and shadow edges, and finds the one
@@ -401,16 +401,17 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
     box-filtered colour; just across the edge where it passes nearest to the centre in
     sided mode. Its cost follows the edges' length, not the image's area.
 
-    Box mode, `subdivide` (static): the pixels whose edge is seen in or through a mirror or
-    glass sphere, or is the outline of one (`subdivided_pixels`), are traced again as 2 × 2
-    sub-boxes (`_subdivided`), each with its own nearest edge and sides; their blend is
-    the mean of the four. Through a curved mirror or glass the world behind is far from
-    linear across a pixel, and one straight edge a pixel misplaces its derivative.
+    Box mode, `subdivide` (static, halvings of the box; 0: none): the pixels whose edge is
+    seen in or through a mirror or glass sphere, or is the outline of one
+    (`subdivided_pixels`), are traced again as k × k sub-boxes, k = 2^`subdivide`
+    (`_subdivided`), each with its own nearest edge and sides; their blend is their
+    mean. Through a curved mirror or glass the world behind is far from linear across a
+    pixel, and one straight edge a pixel misplaces its derivative.
     """
     n = o.shape[1]
     capacity = edge_capacity(n) if capacity is None else min(n, capacity)
     if subdivide and mode == BOX and s.needs_secondary_rays:
-        return _subdivided(s, p, (o, d, diff), depth, width, capacity)
+        return _subdivided(s, p, (o, d, diff), depth, width, capacity, subdivide)
     return _edge_pass(s, p, (o, d, diff), depth, width, mode, capacity).samples
 
 
@@ -485,25 +486,30 @@ def subdivided_pixels(s: Structure, best: edges.Best, width):
     return (crossed & ((best.rays.level > 0) | own)) | best.shadowed
 
 
-#: A pixel's 2 × 2 sub-boxes: their centres' offsets from its centre, in quarter boxes.
-SUB_BOX_OFFSETS = ((-1, -1), (1, -1), (-1, 1), (1, 1))
+def sub_box_offsets(halvings: int) -> tuple[tuple[float, float], ...]:
+    """A pixel's k × k sub-boxes (k = 2^`halvings`): their centres' offsets from its
+    centre in boxes, x fastest ((±¼, ±¼) for 2 × 2)."""
+    k = 2**halvings
+    steps = [(2 * i + 1 - k) / (2 * k) for i in range(k)]
+    return tuple((sx, sy) for sy in steps for sx in steps)
 
 
-def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: int) -> edges.EdgeSamples:
+def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: int, halvings: int) -> edges.EdgeSamples:
     """`trace_edges` in box mode with sub-boxes: rounds of one compiled pass
     (`_edge_pass`, a `lax.scan`) over the same number of rays. Round 0 traces the
     pixels and picks those to subdivide (up to `capacity`); each later round traces the
-    2 × 2 sub-boxes of a quarter of `capacity` of them (the primary rays moved to the
-    sub-boxes' centres by their differentials, which halve), and is skipped at run time
-    past the last. A pixel's blend is the mean of its sub-boxes' blends.
+    k × k sub-boxes (k = 2^`halvings`) of a k²-th of `capacity` of them (the primary
+    rays moved to the sub-boxes' centres by their differentials, which shrink by k), and
+    is skipped at run time past the last. A pixel's blend is the mean of its sub-boxes'.
 
     One pass serves both, so the mode's program holds the chain's passes once, not
-    twice: its compile time is about the one-box mode's."""
+    twice: its compile time is about the one-box mode's, whatever k."""
     n = primary[0].shape[1]
-    group = max(1, capacity // 4)  # pixels per sub-box round: their 4 sub-boxes fill at most `capacity`
+    offsets = sub_box_offsets(halvings)
+    kk = len(offsets)
+    group = max(1, capacity // kk)  # pixels per sub-box round: their k² sub-boxes fill at most `capacity`
     rounds = -(-capacity // group)
-    size = max(n, 4 * group)  # rays per round (more than n only for images of under 4 pixels)
-    quarter = width / 4
+    size = max(n, kk * group)  # rays per round (more than n only for images of under k² pixels)
 
     def sub_box_rays(chosen, r):
         """The sub-boxes of chosen pixels r·group … (r + 1)·group − 1, as `size` rays, and
@@ -512,13 +518,13 @@ def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: i
         po, pd, pdf = jax.tree_util.tree_map(lambda a: a[..., jax.lax.dynamic_slice(index, (r * group,), (group,))],
                                              primary)
 
-        def four(a):  # 4 × (..., K) → (..., size): a pixel's four sub-boxes next to one another
-            return pad_last(jnp.stack(a, axis=-1).reshape(a[0].shape[:-1] + (4 * group,)), size)
+        def each(a):  # k² × (..., K) → (..., size): a pixel's sub-boxes next to one another
+            return pad_last(jnp.stack(a, axis=-1).reshape(a[0].shape[:-1] + (kk * group,)), size)
 
-        moved = [edges.moved_rays(po, pd, pdf, sx * quarter, sy * quarter) for sx, sy in SUB_BOX_OFFSETS]
-        rays = (four([mv[0] for mv in moved]), four([mv[1] for mv in moved]),
-                edges.Differentials(*(four([a / 2] * 4) for a in pdf)))
-        return rays, 4 * jnp.clip(chosen.count - r * group, 0, group)
+        moved = [edges.moved_rays(po, pd, pdf, sx * width, sy * width) for sx, sy in offsets]
+        rays = (each([mv[0] for mv in moved]), each([mv[1] for mv in moved]),
+                edges.Differentials(*(each([a / 2**halvings] * kk) for a in pdf)))
+        return rays, kk * jnp.clip(chosen.count - r * group, 0, group)
 
     def one(r, chosen):
         sub, live = sub_box_rays(chosen, jnp.maximum(r - 1, 0))
@@ -533,7 +539,7 @@ def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: i
 
     chosen, samples = jax.lax.scan(body, pack(jnp.zeros(size, bool), capacity), jnp.arange(1 + rounds))
     pixels = jax.tree_util.tree_map(lambda a: a[0, ..., :n], samples)
-    boxes = samples.blended[1:, :, :4 * group].reshape(rounds, 3, group, 4).mean(axis=-1)
+    boxes = samples.blended[1:, :, :kk * group].reshape(rounds, 3, group, kk).mean(axis=-1)
     boxes = jnp.moveaxis(boxes, 0, 1).reshape(3, rounds * group)[:, :capacity]
     return pixels._replace(blended=chosen.scatter(pixels.blended, boxes))
 

@@ -6,7 +6,7 @@ median relative error, the worst parameters, and the per-pixel cosine per parame
 the worst over the fine yardsticks (64 × 64 samples, 0.04 px; 48 × 48, 0.05 px) and over
 the coarse ones (16 × 16 and 24 × 24, 0.3 and 0.6 px) apart.
 
-    python scripts/edges_accuracy.py [--edges W] [--spp K] [--subdivide] [SCENE ...]
+    python scripts/edges_accuracy.py [--edges W] [--spp K] [--subdivide [N]] [SCENE ...]
 """
 
 from __future__ import annotations
@@ -34,7 +34,8 @@ def main() -> None:
     ap.add_argument("scenes", nargs="*")
     ap.add_argument("--edges", type=float, default=1.0)
     ap.add_argument("--spp", type=int, default=1)
-    ap.add_argument("--subdivide", action="store_true", help="render(..., subdivide=True): 2 x 2 sub-boxes in mirrors and glass")
+    ap.add_argument("--subdivide", type=int, nargs="?", const=1, default=0, metavar="N",
+                    help="render(..., subdivide=N): 2^N x 2^N sub-boxes in mirrors and glass (N = 1 without a value)")
     args = ap.parse_args()
     for name in args.scenes or list(DECKS):
         ys = yardsticks(name)

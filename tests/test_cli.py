@@ -230,7 +230,8 @@ def test_outdir_that_is_a_file(tmp_path, capsys):
     assert (tmp_path / "afile").read_text() == "keep me"
 
 
-@pytest.mark.parametrize("argv", [["--spp", "0"], ["--depth", "-1"], ["--dtype", "float16"], ["--edges", "99"], ["--bogus"]])
+@pytest.mark.parametrize("argv", [["--spp", "0"], ["--depth", "-1"], ["--dtype", "float16"], ["--edges", "99"], ["--bogus"],
+                                  ["--edges", "1", "--subdivide", "4"]])
 def test_bad_options_are_one_line(tmp_path, capsys, argv):
     deck = write_deck(tmp_path, SMALL + "rend a.ras\n")
     with pytest.raises(SystemExit) as info:
@@ -366,7 +367,7 @@ def test_edges_reaches_the_renderer(tmp_path, capsys, monkeypatch):
 
     calls = []
 
-    def with_edges(scene, *, depth=None, spp=1, dtype=None, edges=0.0, subdivide=False):
+    def with_edges(scene, *, depth=None, spp=1, dtype=None, edges=0.0, subdivide=0):
         calls.append((edges, spp, subdivide))
         return jnp.zeros((scene.structure.height, scene.structure.width, 3))
 
@@ -374,6 +375,7 @@ def test_edges_reaches_the_renderer(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(rtjax.batch, "render", with_edges)
     assert render_main(capsys, deck, "-o", tmp_path / "out", "--edges", "1.5", "--spp", "2")[0] == 0
     assert render_main(capsys, deck, "-o", tmp_path / "out", "--edges", "1", "--subdivide")[0] == 0
-    assert calls == [(1.5, 2, False), (1.0, 1, True)]
+    assert render_main(capsys, deck, "-o", tmp_path / "out", "--edges", "1", "--subdivide", "2")[0] == 0
+    assert calls == [(1.5, 2, 0), (1.0, 1, 1), (1.0, 1, 2)]
     code, _, err = render_main(capsys, deck, "-o", tmp_path / "out", "--subdivide")
     assert code != 0 and "subdivide needs the silhouette-aware mode" in err, err

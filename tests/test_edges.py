@@ -436,6 +436,17 @@ def every_pixel_in_the_mode(name: str, subdivide: bool = False) -> np.ndarray:
                                                subdivide=subdivide))
 
 
+@pytest.mark.parametrize("halvings", [1, 2, 3])
+def test_sub_boxes_tile_the_box(halvings):
+    """`subdivide`'s k × k sub-boxes (k = 2^halvings): their centres are those of the
+    cells of a k × k grid over the box (offsets in boxes from its centre), each once."""
+    k = 2**halvings
+    offsets = np.array(rtjax.trace.sub_box_offsets(halvings))
+    cells = (np.stack(np.meshgrid(np.arange(k), np.arange(k), indexing="xy"), -1).reshape(-1, 2) + 0.5) / k - 0.5
+    np.testing.assert_array_equal(offsets, cells)
+    assert len({tuple(o) for o in offsets}) == k * k
+
+
 def test_edge_pixels_are_those_beside_a_change_of_key():
     keys = np.full((12, 16), 7, np.uint32)  # the lattice and a ring `reach` wide around it
     keys[:, 9:] = 8  # a vertical edge between columns 8 and 9

@@ -237,6 +237,12 @@ def test_bad_render_options():
     for kw in (dict(spp=0), dict(spp=2.5), dict(depth=-1), dict(dtype="int32"), dict(tile=0)):
         with pytest.raises(rtjax.RtjaxError):
             rtjax.render(s, **kw)
+    for kw, message in ((dict(edges=1.0, subdivide=4), r"subdivide \(halvings of the box\) must be a whole number in \[0, 3\], not 4"),
+                        (dict(edges=1.0, subdivide=1.5), "not 1.5"), (dict(edges=1.0, subdivide=-1), "not -1"),
+                        (dict(subdivide=2), r"subdivide needs the silhouette-aware mode \(edges > 0\)")):
+        for rendered in (rtjax.render, functools.partial(rtjax.render_samples, xy=np.ones((1, 2)))):
+            with pytest.raises(rtjax.RtjaxError, match=message):
+                rendered(s, **kw)
     for xy in (np.zeros((0, 2)), np.zeros(5), np.zeros((5, 3))):  # no positions was a ZeroDivisionError
         for sampled in (rtjax.render_samples, functools.partial(rtjax.edge_samples, edges=1.0)):
             with pytest.raises(rtjax.RtjaxError, match=r"xy must have shape \(K, 2\) with K ≥ 1"):
