@@ -14,6 +14,8 @@ class Config:
     - `ref_depth`, `ref_spp`: the float64 reference's depth and K of its K×K samples per pixel.
     - `dtypes`, `depths`, `spps`, `edges`, `scales`: the values each knob takes alone
       from the default render (`depths` only for decks with mirrors or glass).
+    - `subdivides`: the 1-pixel silhouette-aware mode with these halvings of the box in
+      the edge pixels of mirrors and glass (`render`'s `subdivide`; decks with them only).
     - `repeats`: timed renders after the compiling one (their median is reported).
     - `derivatives`, `derivative_scale`, `lm_step`: whether derivatives are timed, at
       which image scale, and whether one Levenberg–Marquardt step is among them.
@@ -35,6 +37,7 @@ class Config:
     depths: tuple[int, ...] = (0, 1, 2, 3, 4, 6, 8, 10, 12)
     spps: tuple[int, ...] = (1, 2, 4, 8)
     edges: tuple[float, ...] = (0.5, 1.0, 2.0)
+    subdivides: tuple[int, ...] = (1, 2)
     scales: tuple[float, ...] = (0.25, 0.5, 1.0)
     repeats: int = 5
     derivatives: bool = True

@@ -27,12 +27,13 @@ def pareto_plot(result: dict, path: str) -> None:
 
     seen, pts = set(), []
     for r in result["settings"]:
-        key = (r["dtype"], r["depth"], r["spp"], r["edges"], r["scale"])
+        key = (r["dtype"], r["depth"], r["spp"], r["edges"], r["subdivide"], r["scale"])
         if r["knob"] == "reference" or key in seen:
             continue
         seen.add(key)
         pts.append((1e3 * r["median_s"], max(r["rms_levels"], 1e-3), r["label"], r["knob"]))
-    colours = {"default": "black", "dtype": "tab:purple", "depth": "tab:blue", "spp": "tab:green", "edges": "tab:orange", "scale": "tab:red"}
+    colours = {"default": "black", "dtype": "tab:purple", "depth": "tab:blue", "spp": "tab:green", "edges": "tab:orange",
+               "subdivide": "tab:brown", "scale": "tab:red"}
     fig = Figure(figsize=(9, 6), dpi=110)
     ax = fig.subplots()
     for knob, colour in colours.items():

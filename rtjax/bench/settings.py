@@ -17,7 +17,7 @@ from .config import Config
 from .measure import image_errors, timed
 
 #: Knob order in the table and the plot.
-KNOBS = ("reference", "default", "dtype", "depth", "spp", "edges", "scale")
+KNOBS = ("reference", "default", "dtype", "depth", "spp", "edges", "subdivide", "scale")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -28,6 +28,7 @@ class Setting:
     depth: int = 10
     spp: int = 1
     edges: float = 0.0
+    subdivide: int = 0
     scale: float = 1.0
 
 
@@ -45,19 +46,24 @@ def label(knob: str, s: Setting) -> str:
         return f"{s.spp}×{s.spp} spp"
     if knob == "edges":
         return f"edges {s.edges:g} px"
+    if knob == "subdivide":
+        return f"edges {s.edges:g} px, {2**s.subdivide}×{2**s.subdivide} sub"
     fractions = {0.25: "¼", 0.5: "½", 1.0: "1"}
     return f"scale {fractions.get(s.scale, f'{s.scale:g}')}"
 
 
 def plan(default: Setting, reference: Setting, cfg: Config, secondary: bool) -> list[tuple[str, Setting]]:
     """The table's (knob, setting) rows: the reference, the default, then each knob alone
-    (depths only when `secondary`: without mirrors or glass every depth renders the same image)."""
+    (depths and sub-boxes only when `secondary`: without mirrors or glass every depth
+    renders the same image, and no pixel is subdivided)."""
     rows = [("reference", reference), ("default", default)]
     rows += [("dtype", dataclasses.replace(default, dtype=d)) for d in cfg.dtypes]
     if secondary:
         rows += [("depth", dataclasses.replace(default, depth=d)) for d in cfg.depths]
     rows += [("spp", dataclasses.replace(default, spp=k)) for k in cfg.spps]
     rows += [("edges", dataclasses.replace(default, edges=w)) for w in cfg.edges]
+    if secondary:
+        rows += [("subdivide", dataclasses.replace(default, edges=1.0, subdivide=n)) for n in cfg.subdivides]
     rows += [("scale", dataclasses.replace(default, scale=f)) for f in cfg.scales]
     return rows
 
@@ -74,7 +80,7 @@ def render_setting(scene, s: Setting) -> Callable[[], object]:
     import rtjax
 
     sc = scaled(scene, s.scale)
-    return lambda: rtjax.render(sc, depth=s.depth, spp=s.spp, dtype=s.dtype, edges=s.edges)
+    return lambda: rtjax.render(sc, depth=s.depth, spp=s.spp, dtype=s.dtype, edges=s.edges, subdivide=s.subdivide)
 
 
 def format_psnr(p: float | None) -> str:
