@@ -30,8 +30,8 @@ jax.config.update("jax_enable_x64", True)  # the reference renders in float64 (d
 from nbsetup import QUICK, SCENES, show, show_png
 
 if QUICK:  # small images, one timed run each, no derivative timings
-    CFG = bench.Config(ref_depth=6, ref_spp=2, depths=(0,), spps=(1, 2), edges=(1.0,), scales=(0.5, 1.0), repeats=1,
-                       derivatives=False, numpy=False, width=64)
+    CFG = bench.Config(ref_depth=6, ref_spp=2, depths=(0,), spps=(1, 2), edges=(1.0,), subdivides=(), scales=(0.5, 1.0),
+                       repeats=1, derivatives=False, numpy=False, width=64)
 else:  # `rtjax bench --quick` (reference 8×8 samples at depth 12, derivatives timed at ¼ size), 5 timed runs each
     CFG = dataclasses.replace(bench.Config.quick(), repeats=5)
 EXTREME_WIDTH = 32 if QUICK else 96
@@ -83,6 +83,11 @@ print("on the Pareto front (nothing both faster and more accurate), fastest firs
 #   narrower (0.5) leaves more aliasing, wider (2) blurs. Its purpose is
 #   derivatives through edges (`fitting` renders with it); the antialiasing comes
 #   with it.
+# * **subdivide**: the same mode with the edge pixels of mirrors and glass split into
+#   2×2 or 4×4 sub-boxes, each with its own nearest edge (`render(..., subdivide=n)`):
+#   inside mirrors and glass one straight edge per pixel is a poor model, and the
+#   sub-boxes take the error below 4×4 supersampling's, for less time. They were made
+#   for derivatives there (docs/EDGES.md); the antialiasing again comes with them.
 # * **scale**: fewer pixels are the fastest renders, but upsampled back to full
 #   size their error is large: previews.
 #

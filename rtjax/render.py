@@ -131,7 +131,7 @@ def render(
       box-filtered as the mean of k × k sub-boxes, k = 2^`subdivide` (1 or True: 2 × 2;
       2: 4 × 4), each with its own nearest edge (`trace.trace_edges`): derivatives far
       closer to the truth inside mirrors and glass, at about twice the mode's cost for
-      2 × 2 (docs/EDGES.md).
+      2 × 2 and four to five times for 4 × 4 (docs/EDGES.md).
     tile: rays traced together (default: 2¹⁷ on a CPU, 2²⁰ on an accelerator); the
       image does not depend on it, only speed and memory do.
 
