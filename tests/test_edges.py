@@ -426,7 +426,7 @@ def big(name: str) -> rtjax.Scene:
 
 
 @functools.lru_cache(maxsize=None)
-def every_pixel_in_the_mode(name: str, subdivide: bool = False) -> np.ndarray:
+def every_pixel_in_the_mode(name: str, subdivide: int = 0) -> np.ndarray:
     """`big(name)` traced in the mode at every pixel centre (`render_samples`), (H·W, 3),
     compiled under `quick_xla`: the whole-image tests' yardstick, kept for the module
     (the glass scene's serves two tests)."""
@@ -526,7 +526,7 @@ def test_whole_image_with_sub_boxes_is_every_pixel_traced_in_the_mode():
     depth = DECKS["glass"][1]
     with quick_xla(clear=True):  # an agreement of two programs, not bits; the compile is what costs
         whole = np.asarray(rtjax.render(s, depth=depth, edges=WIDTH, subdivide=True)).reshape(-1, 3)
-    every, one_box = every_pixel_in_the_mode("glass", True), every_pixel_in_the_mode("glass")
+    every, one_box = every_pixel_in_the_mode("glass", 1), every_pixel_in_the_mode("glass")
     np.testing.assert_allclose(whole, every, rtol=0, atol=1e-9)
     assert np.abs(every - one_box).max() > 0.5  # measured 0.99
 
