@@ -3,10 +3,11 @@ the stored one: central differences of the reference (`rtjax.reference`) at k ×
 samples a pixel with a small step (default 32 × 32, 0.075 px of image motion), beside
 the stored yardsticks and the silhouette mode's derivative image at 1 × 1 and 2 × 2
 sub-boxes a pixel (`--modes`; jax.jvp of `render(..., edges=1, spp=s, dtype=float64)`;
-`--subdivide`: also with `subdivide=True`, 2 × 2 sub-boxes in the pixels of mirrors and glass): per-pixel
-cosines and the weighted sums' ratio to the fine yardstick's.
+`--subdivide [N]`: also with `subdivide=N`, 2^N × 2^N sub-boxes in the pixels of mirrors
+and glass, N = 1 without a value): per-pixel cosines and the weighted sums' ratio to the
+fine yardstick's.
 
-    python scripts/edges_fine_check.py SCENE PARAM [--step 0.075] [--spp 32] [--modes 1,2] [--subdivide]
+    python scripts/edges_fine_check.py SCENE PARAM [--step 0.075] [--spp 32] [--modes 1,2] [--subdivide [N]]
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ def main() -> None:
     ap.add_argument("param")
     ap.add_argument("--step", type=float, default=0.075)
     ap.add_argument("--spp", type=int, default=32)
-    ap.add_argument("--subdivide", action="store_true")
+    ap.add_argument("--subdivide", type=int, nargs="?", const=1, default=0, metavar="N")
     ap.add_argument("--modes", default="1,2", help="the mode's sub-boxes a pixel (k for k × k), comma-separated")
     args = ap.parse_args()
     text, depth = DECKS[args.scene]
@@ -65,7 +66,7 @@ def main() -> None:
     at, n = varied(args.scene, s)
     e = jnp.zeros(n, jnp.float64).at[k].set(1.0)
     for spp in (int(k) for k in args.modes.split(",")):
-        for subdivide in (False, True) if args.subdivide else (False,):
+        for subdivide in (0, args.subdivide) if args.subdivide else (0,):
             t = time.time()
             jac = np.asarray(jax.jvp(lambda v: rtjax.render(at(v), depth=depth, edges=1.0, spp=spp, subdivide=subdivide),
                                      (jnp.zeros(n),), (e,))[1])
