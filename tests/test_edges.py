@@ -453,9 +453,9 @@ def test_more_sub_boxes_than_pixels_approach_the_supersampled_image():
     pixels, so that 8 × 8 sub-boxes (`subdivide=3`) outnumber the image's pixels: the
     image is finite, and its distance from the reference's 16 × 16-supersampled one
     falls as the boxes shrink (measured 4.01, 2.47, 1.76 levels for 1, 2 × 2, 8 × 8)."""
-    from edge_scenes import DECKS
+    from edge_scenes import DECKS as CHAIN_DECKS  # issue 21's scenes, not this module's DECKS
 
-    text = DECKS["heldout"][0].replace("size 48", "size 5")
+    text = CHAIN_DECKS["heldout"][0].replace("size 48", "size 5")
     s = rtjax.parse_deck(text).frames[0].scene.astype(jnp.float64)
     supersampled = reference.render_reference(reference.parse_deck_text(text)[0], depth=6, spp=16)
     errors = []
