@@ -123,8 +123,10 @@ class Parallel:
         return self._init(ys, self.stepper.args(samples))
 
     def step(self, ys, states, samples, active):
-        ys, states, done, codes, losses = self._step(ys, states, self.stepper.args(samples), jnp.asarray(active))
-        return ys, states, _host(done), _host(codes), _host(losses).astype(np.float64)
+        ys, states, done, codes, losses, accepted, promised = self._step(ys, states, self.stepper.args(samples),
+                                                                         jnp.asarray(active))
+        return (ys, states, _host(done), _host(codes), _host(losses).astype(np.float64), _host(accepted),
+                _host(promised).astype(np.float64))
 
     def keep(self, better, new, old):
         return self._keep(jnp.asarray(better), new, old)
@@ -141,7 +143,7 @@ class Parallel:
             chunk = list(points[first:first + self.size])
             ys = self.pad(jax.tree.map(lambda *a: jnp.stack(a), *chunk))
             active = np.arange(self.size) < len(chunk)
-            _, states, _, _, losses = self.step(ys, self.init(ys, samples), samples, active)
+            _, states, _, _, losses, _, _ = self.step(ys, self.init(ys, samples), samples, active)
             states = jax.tree.map(lambda a: np.asarray(_host(a)) if eqx.is_array(a) else a, states)
             out.extend((float(losses[k]), jax.tree.map(lambda a: a[k] if eqx.is_array(a) else a, states))
                        for k in range(len(chunk)))
@@ -201,18 +203,20 @@ class Parallel:
 
             def run(dyn):
                 y, state = eqx.combine(dyn, eqx.filter((y0, s0), eqx.is_array, inverse=True))
-                y2, state2, done, code, loss = self.stepper.advance(y, state, args)
+                y2, state2, done, code, loss, accepted, promised = self.stepper.advance(y, state, args)
                 new, static = eqx.partition((y2, state2), eqx.is_array)
                 box.append(static)
-                return new, jnp.asarray(done, bool), jnp.asarray(code, jnp.int32), jnp.asarray(loss, dtype)
+                return (new, jnp.asarray(done, bool), jnp.asarray(code, jnp.int32), jnp.asarray(loss, dtype),
+                        jnp.asarray(accepted, bool), jnp.asarray(promised, dtype))
 
             def keep(dyn):
-                return dyn, jnp.asarray(True), jnp.asarray(CODES["successful"], jnp.int32), jnp.asarray(jnp.inf, dtype)
+                return (dyn, jnp.asarray(True), jnp.asarray(CODES["successful"], jnp.int32), jnp.asarray(jnp.inf, dtype),
+                        jnp.asarray(False), jnp.asarray(0, dtype))
 
             y0, s0 = y, state
-            new, done, code, loss = jax.lax.cond(active, run, keep, (dyn_y, dyn_state))
+            new, done, code, loss, accepted, promised = jax.lax.cond(active, run, keep, (dyn_y, dyn_state))
             y2, state2 = eqx.combine(new, box[0])
-            return y2, state2, done, code, loss
+            return y2, state2, done, code, loss, accepted, promised
 
         return self._over_starts(one, (ys, states, active), (args,))
 

@@ -118,40 +118,55 @@ def level_budget(pyramid, level: int, max_steps: int, steps: int, loss_scale: fl
     return max(1, (max_steps - steps) // share), False, 0.0
 
 
-#: Iterations in a row without a 1 % decrease of the best loss that end a level
-#: (`LevelBook`).
+#: A step gains when it lowers the best loss by this share (`LevelBook`).
+GAIN = 0.01
+#: Steps in a row without a gain that end a level (`LevelBook`).
 PATIENCE = 2
+#: Rejected steps in a row whose model promised a gain that end a level (`LevelBook`):
+#: each shrinks the trust region (by 4 in optimistix's classical one).
+REJECTIONS = 4
 
 
 class LevelBook:
     """One level's bookkeeping for K starts at once (NumPy arrays): the best loss so far,
-    iterations without a 1 % decrease, the result codes (`solvers.CODES`), and the rules
-    that stop a start.
+    steps without a gain and rejected steps that promised one, the result codes
+    (`solvers.CODES`), and the rules that stop a start.
 
-    A level stops a start once its best loss improved by less than 1 % over `PATIENCE`
-    iterations in a row (steps rejected or negligible): on a coarse level its optimum is
-    only near the full-size one; on the full-size level the loss has levelled off, a
-    success. Any start stops once its best loss is at most `until` (a refinement takes
-    over: a success), or when the solver says it is done, or when its loss is not finite
-    (divergence; its best point is kept). Starts not `active` (padding) never step."""
+    A level stops a start after `PATIENCE` steps in a row without a gain (of `GAIN` of
+    its best loss: accepted steps that gained less, and rejected steps whose model
+    promised less), or after `REJECTIONS` rejected steps in a row whose model promised a
+    gain: on a coarse level its optimum is only near the full-size one; on the full-size
+    level the loss has levelled off, a success. A rejected step that promised a gain is
+    the solver shortening a step its model overrated, not the loss levelling off: a
+    photo's first steps on a level are often rejected two or three times before the
+    shorter one gains. Any start stops once its best loss is at most `until` (a
+    refinement takes over: a success), or when the solver says it is done, or when its
+    loss is not finite (divergence; its best point is kept). Starts not `active`
+    (padding) never step."""
 
     def __init__(self, starts: int, coarse: bool, until: float, active=None):
         self.coarse, self.until = coarse, until
         self.best = np.full(starts, math.inf)
         self.stalled = np.zeros(starts, int)
+        self.rejected = np.zeros(starts, int)
         self.results = np.full(starts, CODES["successful"], np.int32)
         self.stopped = np.zeros(starts, bool) if active is None else ~np.asarray(active, bool)
         self.levelled = np.zeros(starts, bool)
 
-    def update(self, loss, done, result) -> tuple[np.ndarray, np.ndarray]:
-        """Take one iteration's losses, solver `done` flags and result codes of the
-        starts that were active; returns which were active and which improved."""
+    def update(self, loss, done, result, accepted, promised) -> tuple[np.ndarray, np.ndarray]:
+        """Take one iteration's losses, solver `done` flags, result codes, whether each
+        step was accepted and the share of the loss it promised to remove, of the starts
+        that were active; returns which were active and which improved."""
         loss = np.asarray(loss, np.float64)
+        accepted = np.asarray(accepted, bool)
+        promising = ~accepted & (np.asarray(promised, np.float64) >= GAIN)
         active = ~self.stopped
         ok = active & np.isfinite(loss)
         diverged = active & ~ok
         self.results[diverged] = CODES["nonlinear_divergence"]
-        self.stalled = np.where(ok, np.where(loss > self.best * 0.99, self.stalled + 1, 0), self.stalled)
+        gained = accepted & (loss <= self.best * (1 - GAIN))
+        self.stalled = np.where(ok & ~promising, np.where(gained, 0, self.stalled + 1), self.stalled)
+        self.rejected = np.where(ok, np.where(promising, self.rejected + 1, 0), self.rejected)
         better = ok & (loss < self.best)
         self.best = np.where(better, loss, self.best)
         finished = ok & np.asarray(done, bool)
@@ -159,7 +174,7 @@ class LevelBook:
         close = ok & ~finished & (self.best <= self.until)
         self.results[close] = CODES["successful"]
         finished |= close
-        stall = ok & ~finished & (self.stalled >= PATIENCE)
+        stall = ok & ~finished & ((self.stalled >= PATIENCE) | (self.rejected >= REJECTIONS))
         if not self.coarse:
             self.levelled |= stall
             self.results[stall] = CODES["successful"]
@@ -185,8 +200,9 @@ class Steps(Protocol):
         """The solver states of starts `ys` on a level."""
 
     def step(self, ys, states, samples, active: np.ndarray):
-        """One step of the `active` starts: (ys, states, done, result codes, losses), the
-        last three NumPy arrays of `size` (losses float64)."""
+        """One step of the `active` starts: (ys, states, done, result codes, losses,
+        accepted, promised), the last five NumPy arrays of `size` (losses and promised
+        float64; `Stepper.advance`)."""
 
     def keep(self, better: np.ndarray, new, old):
         """Starts `new` where `better`, else `old`."""
@@ -216,9 +232,10 @@ class Single:
         return self.stepper.init(y, samples)
 
     def step(self, y, state, samples, active):
-        y, state, done, code, loss = self.stepper.step(y, state, samples)
+        y, state, done, code, loss, accepted, promised = self.stepper.step(y, state, samples)
         self.last = (y, state, float(loss), samples)
-        return y, state, np.array([bool(done)]), np.array([int(code)], np.int32), np.array([float(loss)])
+        return (y, state, np.array([bool(done)]), np.array([int(code)], np.int32), np.array([float(loss)]),
+                np.array([bool(accepted)]), np.array([float(promised)]))
 
     def keep(self, better, new, old):
         return new if better[0] else old
@@ -229,7 +246,7 @@ class Single:
     def evaluate(self, points, samples):
         out = []
         for y in points:
-            _, state, _, _, loss = self.stepper.step(y, self.init(y, samples), samples)
+            _, state, _, _, loss, _, _ = self.stepper.step(y, self.init(y, samples), samples)
             out.append((float(loss), state))
         return out
 
@@ -287,8 +304,8 @@ def fit_starts(problem: Problem, stepper: Steps, ys, begun: Sequence[rtjax.Scene
         n = 0
         for n in range(1, budget + 1):
             t0 = time.perf_counter()
-            ys, states, done, codes, losses = stepper.step(ys, states, samples, ~book.stopped)
-            active, better = book.update(losses, done, codes)
+            ys, states, done, codes, losses, accepted, promised = stepper.step(ys, states, samples, ~book.stopped)
+            active, better = book.update(losses, done, codes, accepted, promised)
             seconds = time.perf_counter() - t0
             if better.any():
                 best_ys = stepper.keep(better, ys, best_ys)

@@ -44,6 +44,20 @@ def _levenberg_marquardt(rtol: float, atol: float) -> optx.LevenbergMarquardt:
     return eqx.tree_at(lambda s: s.search, lm, _TrustRegion(high_cutoff=LM_GROW_ABOVE))
 
 
+def promised_gain(y, state):
+    """The share of the loss at the last accepted point `y` that a least-squares
+    solver's model (Gauss–Newton's ½‖r + J·Δ‖²) expects its trial point `state.y_eval`
+    to remove; 0 for BFGS, whose line search has no such model (its rejected steps
+    count as steps without a gain)."""
+    info = state.f_info
+    if not isinstance(info, optx.FunctionInfo.ResidualJac):
+        return jnp.zeros((), jax.tree.leaves(y)[0].dtype)
+    diff = jax.tree.map(lambda a, b: a - b, state.y_eval, y)
+    predicted = optx.ClassicalTrustRegion().predict_reduction(diff, info)
+    loss = 0.5 * jnp.sum(info.residual**2)
+    return -predicted / jnp.maximum(loss, jnp.finfo(loss.dtype).tiny)
+
+
 #: The solvers by name, each made from (rtol, atol).
 SOLVERS = {
     "lm": _levenberg_marquardt,
@@ -244,12 +258,16 @@ class Stepper:
         return compile_ahead(lower, pyramid)
 
     def advance(self, y, state, args):
-        """One solver step: returns (y, state, done, result code, loss), where y is the last
-        accepted point and loss ½·mean(r²) there."""
+        """One solver step: returns (y, state, done, result code, loss, accepted, promised),
+        where y is the last accepted point, loss ½·mean(r²) there, accepted whether this
+        step's trial point was, and promised the share of the loss its model expected
+        that point to remove (`promised_gain`)."""
+        before = state.num_accepted_steps
+        promised = promised_gain(y, state)
         y, state, _ = self.solver.step(self.fn, y, args, self.options, state, frozenset())
         done, result = self.solver.terminate(self.fn, y, args, self.options, state, frozenset())
         # the state holds the accepted point's function value (no second render):
         # Gauss–Newton family residuals, or BFGS's ½Σr²
         info = state.f_info
         loss = 0.5 * jnp.mean(info.residual**2) if hasattr(info, "residual") else info.f / args[0].target.size
-        return y, state, done, result_code(result), loss
+        return y, state, done, result_code(result), loss, state.num_accepted_steps > before, promised

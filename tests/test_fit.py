@@ -44,20 +44,47 @@ def test_recovers_centres(truth, target):
 
 @pytest.mark.parametrize("coarse", [False, True])
 def test_a_level_stops_after_its_patience_without_progress(coarse):
-    """`LevelBook`: a start that improves its best loss by less than 1 % for PATIENCE
-    iterations in a row stops; a full-size level calls that a success (levelled off),
-    a coarse one hands over without a verdict. A 1 % gain in between restarts the count."""
-    from fitting.solve import PATIENCE, LevelBook
+    """`LevelBook`: a start whose steps improve its best loss by less than GAIN for
+    PATIENCE steps in a row stops (accepted steps that gained less, or rejected ones
+    that promised less); a full-size level calls that a success (levelled off), a
+    coarse one hands over without a verdict. A gain in between restarts the count."""
+    from fitting.solve import GAIN, PATIENCE, LevelBook
     from fitting.solvers import CODES
 
     book = LevelBook(2, coarse, 0.0)
-    losses = [[1.0, 1.0], [0.5, 0.5], [0.499, 0.4]] + [[0.498, 0.39]] * (PATIENCE - 1)
-    for loss in losses:
+    yes, no, none = np.ones(2, bool), np.zeros(2, bool), np.zeros(2, np.int32)
+    book.update(np.array([1.0, 1.0]), no, none, yes, np.zeros(2))
+    book.update(np.array([0.5, 0.5]), no, none, yes, np.full(2, 0.6))
+    for _ in range(PATIENCE - 1):
+        book.update(np.array([0.499, 0.4]), no, none, yes, np.full(2, 0.3))
         assert not book.stopped.any()
-        book.update(np.array(loss), np.zeros(2, bool), np.zeros(2, np.int32))
+    # rejected: start 0's model promised less than GAIN, start 1's more (start 1 gained before)
+    book.update(np.array([0.499, 0.4]), no, none, no, np.array([GAIN / 2, 2 * GAIN]))
     assert book.stopped.tolist() == [True, False]
     assert book.levelled.tolist() == [not coarse, False]
-    assert book.results[0] == CODES["successful"] and book.best[0] == 0.498
+    assert book.results[0] == CODES["successful"] and book.best[0] == 0.499
+
+
+@pytest.mark.parametrize("coarse", [False, True])
+def test_a_level_stops_after_rejected_steps_in_a_row(coarse):
+    """`LevelBook`: REJECTIONS rejected steps in a row whose model promised a gain stop
+    a start (the solver found no shorter step that gains); fewer do not, and an
+    accepted step restarts the count."""
+    from fitting.solve import GAIN, REJECTIONS, LevelBook
+    from fitting.solvers import CODES
+
+    book = LevelBook(2, coarse, 0.0)
+    no, none, promise = np.zeros(2, bool), np.zeros(2, np.int32), np.full(2, 10 * GAIN)
+    book.update(np.array([1.0, 1.0]), no, none, np.ones(2, bool), promise)
+    for _ in range(REJECTIONS - 1):
+        book.update(np.array([1.0, 1.0]), no, none, no, promise)
+    book.update(np.array([1.0, 0.5]), no, none, np.array([False, True]), promise)
+    assert book.stopped.tolist() == [True, False]
+    assert book.levelled.tolist() == [not coarse, False]
+    assert book.results[0] == CODES["successful"] and book.best.tolist() == [1.0, 0.5]
+    for _ in range(REJECTIONS - 1):
+        book.update(np.array([1.0, 0.5]), no, none, no, promise)
+    assert not book.stopped[1]
 
 
 @pytest.mark.slow
