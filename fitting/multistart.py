@@ -33,7 +33,7 @@ from .errors import FitError
 from .options import FitOptions
 from .problem import Problem
 from .solve import MultiStartResult, fit_starts
-from .solvers import CODES, Stepper, compile_ahead
+from .solvers import CODES, Step, Stepper, compile_ahead
 from .verdict import judge
 
 #: The mesh axis the starts are laid out over.
@@ -123,10 +123,9 @@ class Parallel:
         return self._init(ys, self.stepper.args(samples))
 
     def step(self, ys, states, samples, active):
-        ys, states, done, codes, losses, accepted, promised = self._step(ys, states, self.stepper.args(samples),
-                                                                         jnp.asarray(active))
-        return (ys, states, _host(done), _host(codes), _host(losses).astype(np.float64), _host(accepted),
-                _host(promised).astype(np.float64))
+        step = self._step(ys, states, self.stepper.args(samples), jnp.asarray(active))
+        return Step(step.y, step.state, _host(step.done), _host(step.code), _host(step.loss).astype(np.float64),
+                    _host(step.accepted), _host(step.promised).astype(np.float64))
 
     def keep(self, better, new, old):
         return self._keep(jnp.asarray(better), new, old)
@@ -143,9 +142,9 @@ class Parallel:
             chunk = list(points[first:first + self.size])
             ys = self.pad(jax.tree.map(lambda *a: jnp.stack(a), *chunk))
             active = np.arange(self.size) < len(chunk)
-            _, states, _, _, losses, _, _ = self.step(ys, self.init(ys, samples), samples, active)
-            states = jax.tree.map(lambda a: np.asarray(_host(a)) if eqx.is_array(a) else a, states)
-            out.extend((float(losses[k]), jax.tree.map(lambda a: a[k] if eqx.is_array(a) else a, states))
+            step = self.step(ys, self.init(ys, samples), samples, active)
+            states = jax.tree.map(lambda a: np.asarray(_host(a)) if eqx.is_array(a) else a, step.state)
+            out.extend((float(step.loss[k]), jax.tree.map(lambda a: a[k] if eqx.is_array(a) else a, states))
                        for k in range(len(chunk)))
         return out
 
@@ -198,25 +197,22 @@ class Parallel:
             """One start's step, skipped (`lax.cond`) once it has stopped: in "map" mode a
             stopped start costs nothing (under vmap the cond is a select of both)."""
             dtype = jax.tree.leaves(y)[0].dtype
-            dyn_y, dyn_state = eqx.filter((y, state), eqx.is_array)
+            dyn, static = eqx.partition((y, state), eqx.is_array)
             box = []
 
             def run(dyn):
-                y, state = eqx.combine(dyn, eqx.filter((y0, s0), eqx.is_array, inverse=True))
-                y2, state2, done, code, loss, accepted, promised = self.stepper.advance(y, state, args)
-                new, static = eqx.partition((y2, state2), eqx.is_array)
-                box.append(static)
-                return (new, jnp.asarray(done, bool), jnp.asarray(code, jnp.int32), jnp.asarray(loss, dtype),
-                        jnp.asarray(accepted, bool), jnp.asarray(promised, dtype))
+                step = self.stepper.advance(*eqx.combine(dyn, static), args)
+                (y2, state2), out_static = eqx.partition((step.y, step.state), eqx.is_array)
+                box.append(out_static)
+                return step._replace(y=y2, state=state2)
 
             def keep(dyn):
-                return (dyn, jnp.asarray(True), jnp.asarray(CODES["successful"], jnp.int32), jnp.asarray(jnp.inf, dtype),
-                        jnp.asarray(False), jnp.asarray(0, dtype))
+                return Step(*dyn, jnp.asarray(True), jnp.asarray(CODES["successful"], jnp.int32),
+                            jnp.asarray(jnp.inf, dtype), jnp.asarray(False), jnp.asarray(0, dtype))
 
-            y0, s0 = y, state
-            new, done, code, loss, accepted, promised = jax.lax.cond(active, run, keep, (dyn_y, dyn_state))
-            y2, state2 = eqx.combine(new, box[0])
-            return y2, state2, done, code, loss, accepted, promised
+            step = jax.lax.cond(active, run, keep, dyn)
+            y2, state2 = eqx.combine((step.y, step.state), box[0])
+            return step._replace(y=y2, state=state2)
 
         return self._over_starts(one, (ys, states, active), (args,))
 

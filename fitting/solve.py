@@ -28,7 +28,7 @@ from .objective import NARROW_BELOW, nuisance_values
 from .options import FitOptions
 from .problem import Problem
 from .select import Selection
-from .solvers import CODES, Stepper, result_message, result_name
+from .solvers import CODES, Step, Stepper, result_message, result_name
 from .texels import Smoothed, TexelCoverage, coverage
 from .verdict import Verdict, judge
 
@@ -153,13 +153,14 @@ class LevelBook:
         self.stopped = np.zeros(starts, bool) if active is None else ~np.asarray(active, bool)
         self.levelled = np.zeros(starts, bool)
 
-    def update(self, loss, done, result, accepted, promised) -> tuple[np.ndarray, np.ndarray]:
-        """Take one iteration's losses, solver `done` flags, result codes, whether each
-        step was accepted and the share of the loss it promised to remove, of the starts
-        that were active; returns which were active and which improved."""
-        loss = np.asarray(loss, np.float64)
-        accepted = np.asarray(accepted, bool)
-        promising = ~accepted & (np.asarray(promised, np.float64) >= GAIN)
+    def update(self, step: Step) -> tuple[np.ndarray, np.ndarray]:
+        """Take one iteration's `step` of K starts (its losses, solver `done` flags, result
+        codes, whether each step was accepted and the share of the loss it promised to
+        remove) for the starts that were active; returns which were active and which
+        improved."""
+        loss = np.asarray(step.loss, np.float64)
+        accepted = np.asarray(step.accepted, bool)
+        promising = ~accepted & (np.asarray(step.promised, np.float64) >= GAIN)
         active = ~self.stopped
         ok = active & np.isfinite(loss)
         diverged = active & ~ok
@@ -169,8 +170,8 @@ class LevelBook:
         self.rejected = np.where(ok, np.where(promising, self.rejected + 1, 0), self.rejected)
         better = ok & (loss < self.best)
         self.best = np.where(better, loss, self.best)
-        finished = ok & np.asarray(done, bool)
-        self.results[finished] = np.asarray(result, np.int32)[finished]
+        finished = ok & np.asarray(step.done, bool)
+        self.results[finished] = np.asarray(step.code, np.int32)[finished]
         close = ok & ~finished & (self.best <= self.until)
         self.results[close] = CODES["successful"]
         finished |= close
@@ -199,10 +200,9 @@ class Steps(Protocol):
     def init(self, ys, samples):
         """The solver states of starts `ys` on a level."""
 
-    def step(self, ys, states, samples, active: np.ndarray):
-        """One step of the `active` starts: (ys, states, done, result codes, losses,
-        accepted, promised), the last five NumPy arrays of `size` (losses and promised
-        float64; `Stepper.advance`)."""
+    def step(self, ys, states, samples, active: np.ndarray) -> Step:
+        """One step of the `active` starts: a `Step` whose fields after `state` are NumPy
+        arrays of `size` (losses and promised gains float64)."""
 
     def keep(self, better: np.ndarray, new, old):
         """Starts `new` where `better`, else `old`."""
@@ -232,10 +232,10 @@ class Single:
         return self.stepper.init(y, samples)
 
     def step(self, y, state, samples, active):
-        y, state, done, code, loss, accepted, promised = self.stepper.step(y, state, samples)
-        self.last = (y, state, float(loss), samples)
-        return (y, state, np.array([bool(done)]), np.array([int(code)], np.int32), np.array([float(loss)]),
-                np.array([bool(accepted)]), np.array([float(promised)]))
+        step = self.stepper.step(y, state, samples)
+        self.last = (step.y, step.state, float(step.loss), samples)
+        return Step(step.y, step.state, np.array([bool(step.done)]), np.array([int(step.code)], np.int32),
+                    np.array([float(step.loss)]), np.array([bool(step.accepted)]), np.array([float(step.promised)]))
 
     def keep(self, better, new, old):
         return new if better[0] else old
@@ -246,8 +246,8 @@ class Single:
     def evaluate(self, points, samples):
         out = []
         for y in points:
-            _, state, _, _, loss, _, _ = self.stepper.step(y, self.init(y, samples), samples)
-            out.append((float(loss), state))
+            step = self.stepper.step(y, self.init(y, samples), samples)
+            out.append((float(step.loss), step.state))
         return out
 
     def end(self, y, samples) -> tuple[float, object] | None:
@@ -304,8 +304,9 @@ def fit_starts(problem: Problem, stepper: Steps, ys, begun: Sequence[rtjax.Scene
         n = 0
         for n in range(1, budget + 1):
             t0 = time.perf_counter()
-            ys, states, done, codes, losses, accepted, promised = stepper.step(ys, states, samples, ~book.stopped)
-            active, better = book.update(losses, done, codes, accepted, promised)
+            step = stepper.step(ys, states, samples, ~book.stopped)
+            ys, states, losses = step.y, step.state, step.loss
+            active, better = book.update(step)
             seconds = time.perf_counter() - t0
             if better.any():
                 best_ys = stepper.keep(better, ys, best_ys)

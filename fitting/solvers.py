@@ -8,6 +8,7 @@ optimistix result comes back as an integer code of this module's own table (`RES
 from __future__ import annotations
 
 import threading
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -15,7 +16,7 @@ import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Int
+from jaxtyping import Array, Bool, Float, Int
 
 from .matrixfree import LM_STEP0_MATRIX_FREE, matrix_free
 from .objective import Objective, Stages
@@ -184,6 +185,19 @@ def compile_ahead(lower, pyramid) -> threading.Thread | None:
     return thread
 
 
+class Step(NamedTuple):
+    """One solver step of one start (`Stepper.advance`), or of K starts (a leading axis;
+    `fitting.solve.Steps.step`, NumPy arrays on the host)."""
+
+    y: Any  # the last accepted point
+    state: Any  # the solver's state
+    done: Bool[Array, "*starts"]  # the solver says it is done
+    code: Int[Array, "*starts"]  # its result (`result_code`)
+    loss: Float[Array, "*starts"]  # ½·mean(r²) at y
+    accepted: Bool[Array, "*starts"]  # this step's trial point was accepted (y is it)
+    promised: Float[Array, "*starts"]  # the share of the loss its model expected it to remove (`promised_gain`)
+
+
 class Stepper:
     """A solver's init and step on one start, for every level of a fit.
 
@@ -257,11 +271,10 @@ class Stepper:
 
         return compile_ahead(lower, pyramid)
 
-    def advance(self, y, state, args):
-        """One solver step: returns (y, state, done, result code, loss, accepted, promised),
-        where y is the last accepted point, loss ½·mean(r²) there, accepted whether this
-        step's trial point was, and promised the share of the loss its model expected
-        that point to remove (`promised_gain`)."""
+    def advance(self, y, state, args) -> Step:
+        """One solver step (a `Step`: the last accepted point, the state, and what the
+        level's bookkeeping needs of it)."""
+        dtype = jax.tree.leaves(y)[0].dtype
         before = state.num_accepted_steps
         promised = promised_gain(y, state)
         y, state, _ = self.solver.step(self.fn, y, args, self.options, state, frozenset())
@@ -270,4 +283,5 @@ class Stepper:
         # Gauss–Newton family residuals, or BFGS's ½Σr²
         info = state.f_info
         loss = 0.5 * jnp.mean(info.residual**2) if hasattr(info, "residual") else info.f / args[0].target.size
-        return y, state, done, result_code(result), loss, state.num_accepted_steps > before, promised
+        return Step(y, state, jnp.asarray(done, bool), result_code(result), jnp.asarray(loss, dtype),
+                    state.num_accepted_steps > before, jnp.asarray(promised, dtype))

@@ -42,6 +42,13 @@ def test_recovers_centres(truth, target):
     assert res.history and res.history[-1]["best_loss"] < res.history[0]["loss"]
 
 
+def _iteration(loss, accepted, promised):
+    """One iteration's `Step` of two starts that did not say they are done (`LevelBook.update`)."""
+    from fitting.solvers import Step
+
+    return Step(None, None, np.zeros(2, bool), np.zeros(2, np.int32), loss, accepted, promised)
+
+
 @pytest.mark.parametrize("coarse", [False, True])
 def test_a_level_stops_after_its_patience_without_progress(coarse):
     """`LevelBook`: a start whose steps improve its best loss by less than GAIN for
@@ -52,14 +59,14 @@ def test_a_level_stops_after_its_patience_without_progress(coarse):
     from fitting.solvers import CODES
 
     book = LevelBook(2, coarse, 0.0)
-    yes, no, none = np.ones(2, bool), np.zeros(2, bool), np.zeros(2, np.int32)
-    book.update(np.array([1.0, 1.0]), no, none, yes, np.zeros(2))
-    book.update(np.array([0.5, 0.5]), no, none, yes, np.full(2, 0.6))
+    yes, no = np.ones(2, bool), np.zeros(2, bool)
+    book.update(_iteration(np.array([1.0, 1.0]), yes, np.zeros(2)))
+    book.update(_iteration(np.array([0.5, 0.5]), yes, np.full(2, 0.6)))
     for _ in range(PATIENCE - 1):
-        book.update(np.array([0.499, 0.4]), no, none, yes, np.full(2, 0.3))
+        book.update(_iteration(np.array([0.499, 0.4]), yes, np.full(2, 0.3)))
         assert not book.stopped.any()
     # rejected: start 0's model promised less than GAIN, start 1's more (start 1 gained before)
-    book.update(np.array([0.499, 0.4]), no, none, no, np.array([GAIN / 2, 2 * GAIN]))
+    book.update(_iteration(np.array([0.499, 0.4]), no, np.array([GAIN / 2, 2 * GAIN])))
     assert book.stopped.tolist() == [True, False]
     assert book.levelled.tolist() == [not coarse, False]
     assert book.results[0] == CODES["successful"] and book.best[0] == 0.499
@@ -74,16 +81,16 @@ def test_a_level_stops_after_rejected_steps_in_a_row(coarse):
     from fitting.solvers import CODES
 
     book = LevelBook(2, coarse, 0.0)
-    no, none, promise = np.zeros(2, bool), np.zeros(2, np.int32), np.full(2, 10 * GAIN)
-    book.update(np.array([1.0, 1.0]), no, none, np.ones(2, bool), promise)
+    no, promise = np.zeros(2, bool), np.full(2, 10 * GAIN)
+    book.update(_iteration(np.array([1.0, 1.0]), np.ones(2, bool), promise))
     for _ in range(REJECTIONS - 1):
-        book.update(np.array([1.0, 1.0]), no, none, no, promise)
-    book.update(np.array([1.0, 0.5]), no, none, np.array([False, True]), promise)
+        book.update(_iteration(np.array([1.0, 1.0]), no, promise))
+    book.update(_iteration(np.array([1.0, 0.5]), np.array([False, True]), promise))
     assert book.stopped.tolist() == [True, False]
     assert book.levelled.tolist() == [not coarse, False]
     assert book.results[0] == CODES["successful"] and book.best.tolist() == [1.0, 0.5]
     for _ in range(REJECTIONS - 1):
-        book.update(np.array([1.0, 0.5]), no, none, no, promise)
+        book.update(_iteration(np.array([1.0, 0.5]), no, promise))
     assert not book.stopped[1]
 
 

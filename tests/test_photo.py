@@ -205,7 +205,8 @@ def test_verdict_from_the_last_step_equals_a_fresh_evaluation(small_fit):
     single = Single(stepper)
     y, state = problem.y0, stepper.init(problem.y0, level)
     for _ in range(3):
-        y, state, *_ = single.step(y, state, level, None)
+        step = single.step(y, state, level, None)
+        y, state = step.y, step.state
     assert single.end(y, copy.copy(level)) is None  # another level's
     assert single.end(problem.y0, level) is None  # not where it ended
     end = single.end(y, level)

@@ -117,7 +117,8 @@ def test_matrix_free_agrees_with_the_dense_jacobian(ball, monkeypatch):
         y, state = problem.y0, stepper.init(problem.y0, level)
         state = eqx.tree_at(lambda s: s.search_state.step_size, state, np.float32(100.0))
         for _ in range(2):  # the first evaluates the start, the second moves
-            y, state, _, _, _, _, _ = stepper.step(y, state, level)
+            step = stepper.step(y, state, level)
+            y, state = step.y, step.state
         texels.append(np.asarray(problem.selection.params(y["scene"]).textures[0]))
     seen = coverage([small]).seen(0)
     assert seen.sum() > 8 and np.abs(texels[0] - 128)[seen].max() > 20  # the steps went somewhere
