@@ -316,6 +316,7 @@ def make_levels(target: np.ndarray, weight: np.ndarray, widths: Sequence[int], e
             pick = np.arange(len(xy))
         else:
             rest = np.setdiff1d(np.arange(len(xy)), band)
+            take = max(take, size - len(rest))  # a level so small that nearly every pixel is near an edge
             pick = np.concatenate([rng.choice(band, take, replace=False), rng.choice(rest, size - take, replace=False)])
         levels.append(Samples(*(jnp.asarray(a, dtype) for a in (xy[pick], step, t[pick], wt[pick], e)), bool(x),
                               jnp.asarray(1.0, dtype), bool(every)))

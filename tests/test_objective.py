@@ -327,6 +327,19 @@ def test_levels_scale_the_robust_loss():
         np.testing.assert_allclose(np.asarray(objective.residuals(blurred, level)), np.asarray(robust(r, "cauchy", 10.0 / 255)), rtol=1e-12)
 
 
+def test_levels_of_a_few_pixels_take_their_samples_from_the_edges():
+    """Widths of a few pixels (`--levels 5,3`): a level whose pixels are nearly all near
+    an edge takes the rest of its K samples from the edge band, each pixel once."""
+    img = np.zeros((40, 60, 3))
+    img[10:30, 15:45] = 200.0
+    levels = make_levels(img, np.ones((40, 60, 1)), [3, 5, 60], [1.0] * 3, jnp.float64)
+    sizes = [len(level.xy) for level in levels]
+    assert sizes == [3 * 2] * 3  # K: the coarsest level's pixels (3 × 2)
+    for level in levels:
+        xy = np.asarray(level.xy)
+        assert len(np.unique(xy, axis=0)) == len(xy)
+
+
 def test_smooth_is_a_normalised_gaussian():
     impulse = np.zeros((21, 21))
     impulse[10, 10] = 1
