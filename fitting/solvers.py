@@ -55,7 +55,7 @@ def promised_gain(y, state):
         return jnp.zeros((), jax.tree.leaves(y)[0].dtype)
     diff = jax.tree.map(lambda a, b: a - b, state.y_eval, y)
     predicted = optx.ClassicalTrustRegion().predict_reduction(diff, info)
-    loss = 0.5 * jnp.sum(info.residual**2)
+    loss = info.as_min()  # ½‖r‖², the loss the trust region itself compares
     return -predicted / jnp.maximum(loss, jnp.finfo(loss.dtype).tiny)
 
 
