@@ -123,9 +123,7 @@ class Parallel:
         return self._init(ys, self.stepper.args(samples))
 
     def step(self, ys, states, samples, active):
-        step = self._step(ys, states, self.stepper.args(samples), jnp.asarray(active))
-        return Step(step.y, step.state, _host(step.done), _host(step.code), _host(step.loss).astype(np.float64),
-                    _host(step.accepted), _host(step.promised).astype(np.float64))
+        return self._step(ys, states, self.stepper.args(samples), jnp.asarray(active)).on_host(_host)
 
     def keep(self, better, new, old):
         return self._keep(jnp.asarray(better), new, old)

@@ -226,16 +226,15 @@ class Single:
     def __init__(self, stepper: Stepper, ahead: threading.Thread | None = None):
         self.stepper = stepper
         self.ahead = ahead
-        self.last = None  # the last step's (y, state, loss, samples)
+        self.last: tuple[Step, object] | None = None  # the last step (on the host) and its level's samples
 
     def init(self, y, samples):
         return self.stepper.init(y, samples)
 
     def step(self, y, state, samples, active):
-        step = self.stepper.step(y, state, samples)
-        self.last = (step.y, step.state, float(step.loss), samples)
-        return Step(step.y, step.state, np.array([bool(step.done)]), np.array([int(step.code)], np.int32),
-                    np.array([float(step.loss)]), np.array([bool(step.accepted)]), np.array([float(step.promised)]))
+        step = self.stepper.step(y, state, samples).on_host()
+        self.last = (step, samples)
+        return step
 
     def keep(self, better, new, old):
         return new if better[0] else old
@@ -254,12 +253,12 @@ class Single:
         """(loss, solver state) of the last step if it was on the level `samples` and
         ended at `y` (a least-squares solver's state holds its accepted point's
         residuals and Jacobian), else None."""
-        if self.last is None or self.last[3] is not samples:
+        if self.last is None or self.last[1] is not samples:
             return None
-        last, state, loss, _ = self.last
-        a, b = jax.tree_util.tree_leaves(last), jax.tree_util.tree_leaves(y)
+        last = self.last[0]
+        a, b = jax.tree_util.tree_leaves(last.y), jax.tree_util.tree_leaves(y)
         same = len(a) == len(b) and all(np.array_equal(np.asarray(u), np.asarray(v)) for u, v in zip(a, b))
-        return (loss, state) if same else None
+        return (float(last.loss[0]), last.state) if same else None
 
 
 def fit_starts(problem: Problem, stepper: Steps, ys, begun: Sequence[rtjax.Scene], options: FitOptions,

@@ -197,6 +197,18 @@ class Step(NamedTuple):
     accepted: Bool[Array, "*starts"]  # this step's trial point was accepted (y is it)
     promised: Float[Array, "*starts"]  # the share of the loss its model expected it to remove (`promised_gain`)
 
+    def on_host(self, host=np.asarray) -> Step:
+        """This step as `fitting.solve.Steps.step` returns it: its flags, codes, losses and
+        promised gains as NumPy arrays with a leading axis of starts (one for a single
+        start; losses and gains float64), each copied by `host` (y and state as they are)."""
+
+        def field(a, dtype):
+            return np.atleast_1d(host(a)).astype(dtype)
+
+        return self._replace(done=field(self.done, bool), code=field(self.code, np.int32),
+                             loss=field(self.loss, np.float64), accepted=field(self.accepted, bool),
+                             promised=field(self.promised, np.float64))
+
 
 class Stepper:
     """A solver's init and step on one start, for every level of a fit.
