@@ -190,18 +190,18 @@ def judge(problem, steps, y: dict, end: tuple[float, object] | None = None) -> V
 
 def undetermined(loose: list[dict]) -> str:
     """The verdict's cause for spheres (`uncertainty`'s entries) not determined to their
-    goal: each one's move, σ and bias, and whether its worst direction is along the view
-    (`ALONG_VIEW`: a centre's outline fixes it across the view, and only its size and
-    what it touches or shades fix its depth); if every one's is, the message ends by
-    saying so."""
+    goal: each one's σ (the bias estimate in quadrature; σ and bias apart in the report),
+    goal and move, marking whether its worst direction is along the view (`ALONG_VIEW`:
+    a centre's outline fixes it across the view, and only its size and what it touches
+    or shades fix its depth); if every one's is, one closing clause says so instead."""
     def along(s):
         return s["sigma_depth_px"] >= ALONG_VIEW * s["sigma_px"]
 
+    everywhere = all(along(s) for s in loose)
     text = "undetermined: " + ", ".join(
-        f"sphere {s['index']} moved {s['moved_px']:.2f} px but is determined only to ±{s['sigma_total_px']:.3g} px "
-        f"(σ {s['sigma_px']:.3g}{' along the view' if along(s) else ''}, bias {s['bias_px']:.3g}; "
-        f"{CONFIDENCE:g}σ over the goal of {s['limit_px']:g})" for s in loose)
-    if all(along(s) for s in loose):
+        f"sphere {s['index']} (σ {s['sigma_total_px']:.3g} px{' along the view' if along(s) and not everywhere else ''}, "
+        f"{CONFIDENCE:g}σ over its goal of {s['limit_px']:g}; moved {s['moved_px']:.2f} px)" for s in loose)
+    if everywhere:
         text += "; what the photo leaves open is depth along the view (across it the outlines fix a centre far better)"
     return text
 

@@ -95,20 +95,21 @@ def test_footprints_are_distance_times_pixel_angle(truth):
 
 
 def test_undetermined_says_which_spheres_are_open_along_the_view():
-    """The verdict's cause names each sphere's move, σ and bias, marks those whose worst
-    direction is along the view, and says that depth is what is open only when it is
-    so for every one."""
-    def sphere(index, sigma, depth):
-        return {"index": index, "moved_px": 2.0, "sigma_total_px": sigma, "sigma_px": sigma, "sigma_depth_px": depth,
-                "bias_px": 0.0, "limit_px": 1.0}
+    """The verdict's cause names each sphere's σ (its bias in quadrature), goal and
+    move, marks those whose worst direction is along the view, and when that is so for
+    every one says once that depth is what is open."""
+    def sphere(index, sigma, depth, limit=1.0):
+        return {"index": index, "moved_px": 2.0, "sigma_total_px": 1.25 * sigma, "sigma_px": sigma,
+                "sigma_depth_px": depth, "bias_px": 0.75 * sigma, "limit_px": limit}
 
     deep, wide = sphere(0, 1.0, 0.95), sphere(3, 2.0, 0.5)
     text = undetermined([deep, wide])
-    assert text == ("undetermined: sphere 0 moved 2.00 px but is determined only to ±1 px (σ 1 along the view, bias 0; "
-                    "3σ over the goal of 1), sphere 3 moved 2.00 px but is determined only to ±2 px (σ 2, bias 0; "
-                    "3σ over the goal of 1)")
-    assert undetermined([deep]).endswith("; what the photo leaves open is depth along the view (across it the "
-                                         "outlines fix a centre far better)")
+    assert text == ("undetermined: sphere 0 (σ 1.25 px along the view, 3σ over its goal of 1; moved 2.00 px), "
+                    "sphere 3 (σ 2.5 px, 3σ over its goal of 1; moved 2.00 px)")
+    assert undetermined([deep, sphere(5, 1.2, 1.2, limit=3.0)]) == (
+        "undetermined: sphere 0 (σ 1.25 px, 3σ over its goal of 1; moved 2.00 px), "
+        "sphere 5 (σ 1.5 px, 3σ over its goal of 3; moved 2.00 px); what the photo leaves open is depth along the view "
+        "(across it the outlines fix a centre far better)")
 
 
 @pytest.mark.slow
