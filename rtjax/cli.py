@@ -18,7 +18,7 @@ from collections.abc import Iterator
 
 from .errors import DeckError, RtjaxError, shown
 from .render import MAX_EDGE_WIDTH, MAX_SUBDIVIDE
-from .xla import tune_cpu, use_compilation_cache
+from .xla import cache_dir, tune_cpu, use_compilation_cache
 
 #: Image sides beyond this need --allow-large (a typo like `size 40000` would take minutes and GBs).
 MAX_SIDE = 16384
@@ -216,19 +216,27 @@ def _float_list(text: str) -> list[float]:
 
 
 class _Progress:
-    """One line per iteration; on a terminal, a bar that fills as the steps are used.
-    Each iteration is a safe point for a signal (`Interrupts.check`)."""
+    """A line when the fit starts (its first step waits for XLA's compile: tens of
+    seconds that would otherwise pass in silence), then one per iteration with the
+    step's time and the time since the start; on a terminal, a bar that fills as the
+    steps are used. Each iteration is a safe point for a signal (`Interrupts.check`)."""
 
     def __init__(self, max_steps: int, quiet: bool, interrupts: "Interrupts"):
         self.max_steps, self.quiet, self.tty = max_steps, quiet, sys.stdout.isatty()
         self.interrupts = interrupts
+
+    def start(self, cache: str | None) -> None:
+        if not self.quiet:
+            kept = f"kept in {cache} for later runs" if cache else "not kept: RTJAX_CACHE=off"
+            print(f"the first step waits while the fit's programs are traced and compiled (tens of seconds; "
+                  f"compiled programs {kept})", flush=True)
 
     def __call__(self, row: dict) -> None:
         self.interrupts.check()
         if self.quiet:
             return
         text = (f"step {row['step']:3d}  {row['width']:4d} px  loss {row['loss']:.4e}  "
-                f"rms {row['rmse_levels']:.3g} levels  {row['seconds']:.2f} s")
+                f"rms {row['rmse_levels']:.3g} levels  {row['seconds']:.2f} s  at {row['elapsed']:.0f} s")
         if "active" in row:  # a multi-start fit: the leading start, and how many are still going
             text += f"  start {row['start']}, {row['active']} going"
         if self.tty:
@@ -288,6 +296,7 @@ def cmd_fit(args) -> int:
     if several and (several_frames or args.smooth):
         raise RtjaxError("--starts and --devices fit one frame without --smooth: give one target")
     scenes = [deck.frames[k].scene for k in chosen]
+    progress.start(cache_dir())
     try:
         with args.interrupts.deferring():
             if several:

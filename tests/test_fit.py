@@ -4,6 +4,7 @@ and a solve that cannot converge (reported, never raised)."""
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -251,8 +252,10 @@ def test_targets_from_files_in_both_byte_orders(truth, target, tmp_path):
 
 @pytest.mark.slow
 def test_cli_fit_writes_its_outputs(tmp_path, truth, target):
-    """`rtjax fit` end to end: progress lines, a table, the fitted deck (a valid deck that
-    renders the fitted image), the image, the JSON report and the plot; exit 0 or 1."""
+    """`rtjax fit` end to end: progress lines (first what the first step waits for, then a
+    line per step with the time since the start, as the report's history has it), a
+    table, the fitted deck (a valid deck that renders the fitted image), the image, the
+    JSON report and the plot; exit 0 or 1."""
     rtjax.save_image(tmp_path / "target.sunimg", target)
     start = truth.replace(ke=0.4)
     rtjax.save_deck(tmp_path / "start.dat", start, "start.sunimg")
@@ -266,6 +269,10 @@ def test_cli_fit_writes_its_outputs(tmp_path, truth, target):
     assert "step   1" in proc.stdout and "ke" in proc.stdout and "Traceback" not in proc.stderr
     report = json.loads((tmp_path / "out" / "fitted.json").read_text())
     assert report["free"] == ["ke"] and report["iterations"] == len(report["history"]) >= 1
+    lines = proc.stdout.splitlines()
+    assert lines[0].startswith("the first step waits") and "not kept: RTJAX_CACHE=off" in lines[0], lines[0]
+    at = [int(m) for m in re.findall(r"^step +\d+ .* at (\d+) s$", proc.stdout, re.M)]
+    assert at == [round(row["elapsed"]) for row in report["history"]], (at, report["history"])
     assert abs(report["parameters"][0]["fitted"] - 0.25) < 0.01
     assert (proc.returncode == 0) == report["converged"]
     fitted = rtjax.load_deck(out)
