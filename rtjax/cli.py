@@ -216,8 +216,8 @@ def _float_list(text: str) -> list[float]:
 
 
 class _Progress:
-    """A line when the fit starts (its first step waits for XLA's compile: tens of
-    seconds that would otherwise pass in silence), then one per iteration with the
+    """A line when the fit starts (its first step waits for the trace and XLA's compile:
+    up to a minute that would otherwise pass in silence), then one per iteration with the
     step's time and the time since the start; on a terminal, a bar that fills as the
     steps are used. Each iteration is a safe point for a signal (`Interrupts.check`)."""
 
@@ -228,7 +228,7 @@ class _Progress:
     def start(self, cache: str | None) -> None:
         if not self.quiet:
             kept = f"kept in {cache} for later runs" if cache else "not kept: RTJAX_CACHE=off"
-            print(f"the first step waits while the fit's programs are traced and compiled (tens of seconds; "
+            print(f"the first step waits while the fit's programs are traced and compiled (seconds to a minute; "
                   f"compiled programs {kept})", flush=True)
 
     def __call__(self, row: dict) -> None:
