@@ -168,20 +168,20 @@ def staged_jacobian(s: Stages, y: dict):
 
 def compile_ahead(lower, pyramid) -> threading.Thread | None:
     """Where a fit's levels `pyramid` end in a whole-image level after coarser ones (a
-    photo's, with a program of its own): compiles the first level's step here and the
-    last's in a background thread, started and returned (else None). `lower` gives a
-    level's step traced and lowered. The last level's program is compiled while the
-    levels before it run, and its first step finds the executable (JAX keeps it)
-    instead of compiling on the critical path. The thread starts once the first level's
-    program is traced on this thread: tracing holds Python's lock, so two traces at
-    once would each take twice as long, whereas XLA's compile of one overlaps the
-    other's trace."""
+    photo's, with a program of its own): traces the last level's step here, compiles it
+    in a background thread, started and returned (else None), and meanwhile traces and
+    compiles the first level's step here. `lower` gives a level's step traced and
+    lowered. The whole-image program, the larger and the one the fit waits for, is
+    compiled while the levels before it are traced, compiled and run, and its first
+    step finds the executable (JAX keeps it). The traces take turns on this thread:
+    tracing holds Python's lock, so two at once would each take twice as long, whereas
+    XLA's compile of one overlaps the other's trace."""
     if len(pyramid) < 2 or not pyramid[-1].whole:
         return None
-    lowered = lower(pyramid[0])
-    thread = threading.Thread(target=lambda: lower(pyramid[-1]).compile(), name="compile ahead", daemon=True)
+    last = lower(pyramid[-1])
+    thread = threading.Thread(target=last.compile, name="compile ahead", daemon=True)
     thread.start()
-    lowered.compile()
+    lower(pyramid[0]).compile()
     return thread
 
 
