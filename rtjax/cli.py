@@ -18,7 +18,7 @@ from collections.abc import Iterator
 
 from .errors import DeckError, RtjaxError, shown
 from .render import MAX_EDGE_WIDTH, MAX_SUBDIVIDE
-from .xla import cache_dir, tune_cpu, use_compilation_cache
+from .xla import tune_cpu, use_compilation_cache
 
 #: Image sides beyond this need --allow-large (a typo like `size 40000` would take minutes and GBs).
 MAX_SIDE = 16384
@@ -296,7 +296,7 @@ def cmd_fit(args) -> int:
     if several and (several_frames or args.smooth):
         raise RtjaxError("--starts and --devices fit one frame without --smooth: give one target")
     scenes = [deck.frames[k].scene for k in chosen]
-    progress.start(cache_dir())
+    progress.start(args.cache)
     try:
         with args.interrupts.deferring():
             if several:
@@ -531,7 +531,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             tune_cpu()  # before anything (a deck's arrays included) starts JAX
             _start_distributed(args)
-            use_compilation_cache()
+            args.cache = use_compilation_cache()  # the folder, or None: what `rtjax fit` tells the user
             return args.run(args)
         except RtjaxError as e:
             print(_one_line(e), file=sys.stderr)
