@@ -168,20 +168,21 @@ def staged_jacobian(s: Stages, y: dict):
 
 def compile_ahead(lower, pyramid) -> threading.Thread | None:
     """Where a fit's levels `pyramid` end in a whole-image level after coarser ones (a
-    photo's, with a program of its own): traces the last level's step here, compiles it
-    in a background thread, started and returned (else None), and meanwhile traces and
-    compiles the first level's step here. `lower` gives a level's step traced and
-    lowered. The whole-image program, the larger and the one the fit waits for, is
-    compiled while the levels before it are traced, compiled and run, and its first
-    step finds the executable (JAX keeps it). The traces take turns on this thread:
-    tracing holds Python's lock, so two at once would each take twice as long, whereas
-    XLA's compile of one overlaps the other's trace."""
+    photo's, with a program of its own): traces the first level's step here and compiles
+    it in a background thread, meanwhile traces the last level's step here and compiles
+    it in another, started and returned (else None); returns once the first level's is
+    compiled. `lower` gives a level's step traced and lowered. Tracing holds Python's
+    lock and XLA's compile does not, so each trace overlaps a compile: the first step
+    waits for one trace and the longer of its compile and the other trace, and the
+    whole-image program, the larger, compiles while the levels before it run (its first
+    step finds the executable: JAX keeps it)."""
     if len(pyramid) < 2 or not pyramid[-1].whole:
         return None
-    last = lower(pyramid[-1])
-    thread = threading.Thread(target=last.compile, name="compile ahead", daemon=True)
+    first = threading.Thread(target=lower(pyramid[0]).compile, name="compile first", daemon=True)
+    first.start()
+    thread = threading.Thread(target=lower(pyramid[-1]).compile, name="compile ahead", daemon=True)
     thread.start()
-    lower(pyramid[0]).compile()
+    first.join()
     return thread
 
 
