@@ -7,6 +7,7 @@ optimistix result comes back as an integer code of this module's own table (`RES
 
 from __future__ import annotations
 
+import concurrent.futures
 import threading
 from typing import Any, NamedTuple
 
@@ -178,11 +179,11 @@ def compile_ahead(lower, pyramid) -> threading.Thread | None:
     step finds the executable: JAX keeps it)."""
     if len(pyramid) < 2 or not pyramid[-1].whole:
         return None
-    first = threading.Thread(target=lower(pyramid[0]).compile, name="compile first", daemon=True)
-    first.start()
-    thread = threading.Thread(target=lower(pyramid[-1]).compile, name="compile ahead", daemon=True)
-    thread.start()
-    first.join()
+    with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="compile first") as pool:
+        first = pool.submit(lower(pyramid[0]).compile)
+        thread = threading.Thread(target=lower(pyramid[-1]).compile, name="compile ahead", daemon=True)
+        thread.start()
+        first.result()  # its error, if any, is raised here
     return thread
 
 

@@ -7,6 +7,7 @@ import json
 import re
 import subprocess
 import sys
+import threading
 
 import numpy as np
 import pytest
@@ -41,6 +42,66 @@ def test_recovers_centres(truth, target):
     err = np.abs(np.asarray(res.scene.params.centers) - np.asarray(truth.params.centers))
     assert err[:, [0, 2]].max() < 0.01 and err[:, 1].max() < 0.02, res.table()
     assert res.history and res.history[-1]["best_loss"] < res.history[0]["loss"]
+
+
+class _Level:
+    """A pyramid level for `compile_ahead`: its name and whether it is a whole image."""
+
+    def __init__(self, name: str, whole: bool):
+        self.name, self.whole = name, whole
+
+
+def _ahead(fail: bool = False):
+    """`fitting.solvers.compile_ahead` over a coarse and a whole-image level whose traces
+    and compiles are logged; the coarse compile waits (up to 5 s) until the whole-image
+    level has been traced, and raises when `fail`. → (its return, the log)."""
+    from fitting.solvers import compile_ahead
+
+    log, traced = [], threading.Event()
+
+    class Lowered:
+        def __init__(self, name):
+            self.name = name
+
+        def compile(self):
+            if self.name == "coarse":
+                traced.wait(5)
+            log.append(f"compiled {self.name}")
+            if fail and self.name == "coarse":
+                raise RuntimeError("out of memory")
+
+    def lower(level):
+        log.append(f"traced {level.name}")
+        if level.name == "whole":
+            traced.set()
+        return Lowered(level.name)
+
+    return compile_ahead(lower, [_Level("coarse", False), _Level("whole", True)]), log
+
+
+def test_compile_ahead_traces_each_level_beside_a_compile():
+    """The coarse level is traced, then compiled while the whole-image level is traced (a
+    trace holds Python's lock, a compile does not); it returns once the coarse one is
+    compiled, the whole-image one compiling in the thread it returns."""
+    thread, log = _ahead()
+    assert log[:2] == ["traced coarse", "traced whole"] and "compiled coarse" in log, log
+    thread.join(30)
+    assert sorted(log) == ["compiled coarse", "compiled whole", "traced coarse", "traced whole"]
+
+
+def test_compile_ahead_raises_the_first_compiles_error():
+    with pytest.raises(RuntimeError, match="out of memory"):
+        _ahead(fail=True)
+
+
+def test_compile_ahead_needs_a_whole_image_level_after_others():
+    from fitting.solvers import compile_ahead
+
+    def lower(level):
+        raise AssertionError("nothing is traced")
+
+    assert compile_ahead(lower, [_Level("coarse", False), _Level("fine", False)]) is None
+    assert compile_ahead(lower, [_Level("whole", True)]) is None
 
 
 def _iteration(loss, accepted, promised):
