@@ -53,11 +53,12 @@ class _Level:
 
 def _ahead(fail: bool = False):
     """`fitting.solvers.compile_ahead` over a coarse and a whole-image level whose traces
-    and compiles are logged; the coarse compile waits (up to 5 s) until the whole-image
-    level has been traced, and raises when `fail`. → (its return, the log)."""
+    and compiles are logged: the whole-image trace waits (up to 5 s) for the coarse
+    compile to begin, logging "overlapped" if it did, and that compile for the trace to
+    end; it raises when `fail`. → (its return, the log)."""
     from fitting.solvers import compile_ahead
 
-    log, traced = [], threading.Event()
+    log, compiling, traced = [], threading.Event(), threading.Event()
 
     class Lowered:
         def __init__(self, name):
@@ -65,15 +66,18 @@ def _ahead(fail: bool = False):
 
         def compile(self):
             if self.name == "coarse":
+                compiling.set()
                 traced.wait(5)
             log.append(f"compiled {self.name}")
             if fail and self.name == "coarse":
                 raise RuntimeError("out of memory")
 
     def lower(level):
-        log.append(f"traced {level.name}")
         if level.name == "whole":
+            if compiling.wait(5):
+                log.append("overlapped")
             traced.set()
+        log.append(f"traced {level.name}")
         return Lowered(level.name)
 
     return compile_ahead(lower, [_Level("coarse", False), _Level("whole", True)]), log
@@ -84,9 +88,9 @@ def test_compile_ahead_traces_each_level_beside_a_compile():
     trace holds Python's lock, a compile does not); it returns once the coarse one is
     compiled, the whole-image one compiling in the thread it returns."""
     thread, log = _ahead()
-    assert log[:2] == ["traced coarse", "traced whole"] and "compiled coarse" in log, log
+    assert log[:3] == ["traced coarse", "overlapped", "traced whole"] and "compiled coarse" in log, log
     thread.join(30)
-    assert sorted(log) == ["compiled coarse", "compiled whole", "traced coarse", "traced whole"]
+    assert sorted(log) == ["compiled coarse", "compiled whole", "overlapped", "traced coarse", "traced whole"]
 
 
 def test_compile_ahead_raises_the_first_compiles_error():
