@@ -176,7 +176,10 @@ def compile_ahead(lower, pyramid) -> threading.Thread | None:
     lock and XLA's compile does not, so each trace overlaps a compile: the first step
     waits for one trace and the longer of its compile and the other trace, and the
     whole-image program, the larger, compiles while the levels before it run (its first
-    step finds the executable: JAX keeps it)."""
+    step finds the executable: JAX keeps it). The first compile's error is raised here;
+    the whole-image one runs in a daemon thread, so that a fit stopped early need not
+    wait for it, and should it fail, its level's first step compiles it again and raises
+    there."""
     if len(pyramid) < 2 or not pyramid[-1].whole:
         return None
     with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="compile first") as pool:
