@@ -253,6 +253,7 @@ class _Progress:
 def cmd_fit(args) -> int:
     """`rtjax fit`: fit a deck's free parameters to a target image, write the results."""
     import fitting
+    from fitting.objective import match_size
     from fitting.report import add_to_report, save_outputs, summary_line, table_text
 
     from .deck import load_deck
@@ -296,16 +297,21 @@ def cmd_fit(args) -> int:
     if several and (several_frames or args.smooth):
         raise RtjaxError("--starts and --devices fit one frame without --smooth: give one target")
     scenes = [deck.frames[k].scene for k in chosen]
+    # what can be refused is refused before the line that says the first step waits
+    images = [fitting.load_target(t, assignment_order=args.assignment_order) for t in targets]
+    for scene, image in zip(scenes, images):
+        match_size(scene, image)
+    fitting.Selection(frame.scene, args.free, args.spheres)
     progress.start(args.cache)
     try:
         with args.interrupts.deferring():
             if several:
-                multi = fitting.fit_multistart(frame.scene, targets[0], args.free, starts=args.starts, seed=args.seed,
+                multi = fitting.fit_multistart(frame.scene, images[0], args.free, starts=args.starts, seed=args.seed,
                                                spread=args.spread, devices=args.devices, spheres=args.spheres,
                                                options=options, callback=progress)
                 result = multi.best
             else:
-                result = fitting.fit(scenes if several_frames else frame.scene, targets if several_frames else targets[0],
+                result = fitting.fit(scenes if several_frames else frame.scene, images if several_frames else images[0],
                                      args.free, spheres=args.spheres, options=options, callback=progress)
     finally:
         progress.close()

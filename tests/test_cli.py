@@ -261,6 +261,26 @@ def test_bad_fit_options_are_one_line(tmp_path, capsys, argv, says):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("target, argv, says", [
+    ("missing.png", [], "missing.png"),
+    ("square.png", [], "the aspect ratios differ"),
+    ("right.png", ["--spheres", "7"], "sphere index 7 is out of range"),
+    ("right.png", ["--free", "textures"], "the scene has no textured spheres"),
+])
+def test_bad_fit_inputs_are_refused_before_the_wait(tmp_path, capsys, target, argv, says):
+    """A target that cannot be read or is of the wrong shape, and a selection the deck
+    lacks, are one line and exit 2 before the line that says the first step waits for
+    the compile (that line came first, then the error)."""
+    deck = write_deck(tmp_path, SMALL + "rend a.ras\n")
+    Image.fromarray(np.zeros((16, 16, 3), np.uint8)).save(tmp_path / "square.png")
+    Image.fromarray(np.zeros((12, 16, 3), np.uint8)).save(tmp_path / "right.png")
+    code = cli.main(["fit", deck, str(tmp_path / target), "-o", str(tmp_path / "out" / "f.dat"), *argv])
+    captured = capsys.readouterr()
+    assert code == 2 and captured.out == ""
+    assert says in one_error_line(captured.err, "")
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("command, flag, what", [("bench", "-o", "the benchmark's outputs"),
                                                 ("fit", "-o", "the fit's outputs")])
 def test_an_output_folder_below_a_file_is_refused_first(tmp_path, capsys, command, flag, what):
