@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import threading
 import time
 from collections.abc import Callable, Sequence
 from typing import Protocol
@@ -28,7 +27,7 @@ from .objective import NARROW_BELOW, nuisance_values
 from .options import FitOptions
 from .problem import Problem
 from .select import Selection
-from .solvers import CODES, Step, Stepper, result_message, result_name
+from .solvers import CODES, Ahead, Step, Stepper, result_message, result_name
 from .texels import Smoothed, TexelCoverage, coverage
 from .verdict import Verdict, judge
 
@@ -195,7 +194,7 @@ class Steps(Protocol):
 
     size: int  # starts stepped, padding included
     devices: int
-    ahead: threading.Thread | None  # compiling the whole-image level's step (`solvers.compile_ahead`)
+    ahead: Ahead | None  # compiling the whole-image level's step (`solvers.compile_ahead`)
 
     def init(self, ys, samples):
         """The solver states of starts `ys` on a level."""
@@ -223,7 +222,7 @@ class Single:
 
     size = devices = 1
 
-    def __init__(self, stepper: Stepper, ahead: threading.Thread | None = None):
+    def __init__(self, stepper: Stepper, ahead: Ahead | None = None):
         self.stepper = stepper
         self.ahead = ahead
         self.last: tuple[Step, object] | None = None  # the last step (on the host) and its level's samples
@@ -296,7 +295,7 @@ def fit_starts(problem: Problem, stepper: Steps, ys, begun: Sequence[rtjax.Scene
         # the first step evaluates the start and returns it with its loss (optimistix
         # accepts a first step unconditionally), so no separate evaluation is needed
         if samples.whole and stepper.ahead is not None:
-            stepper.ahead.join()  # its step compiled once, not again beside it
+            stepper.ahead.wait()  # its step compiled once, not again beside it; its error raised here
         states = stepper.init(ys, samples)
         best_ys = ys
         book = LevelBook(stepper.size, not full_size, until, active=real)

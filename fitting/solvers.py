@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import threading
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import equinox as eqx
 import jax
@@ -167,7 +167,29 @@ def staged_jacobian(s: Stages, y: dict):
     return jac, value
 
 
-def compile_ahead(lower, pyramid) -> threading.Thread | None:
+class Ahead(threading.Thread):
+    """A daemon thread that compiles a program ahead of its use (`compile_ahead`). Its
+    error is kept for `wait`, not printed by the thread: it belongs to the fit, raised
+    where the fit needs the program."""
+
+    def __init__(self, compile: Callable[[], object]):
+        super().__init__(name="compile ahead", daemon=True)
+        self._compile, self.error = compile, None
+
+    def run(self) -> None:
+        try:
+            self._compile()
+        except BaseException as e:  # handed to `wait`
+            self.error = e
+
+    def wait(self) -> None:
+        """Once compiled: raises the compile's error, if any."""
+        self.join()
+        if self.error is not None:
+            raise self.error
+
+
+def compile_ahead(lower, pyramid) -> Ahead | None:
     """Where a fit's levels `pyramid` end in a whole-image level after coarser ones (a
     photo's, with a program of its own): traces the first level's step here and compiles
     it in a background thread, meanwhile traces the last level's step here and compiles
@@ -177,14 +199,14 @@ def compile_ahead(lower, pyramid) -> threading.Thread | None:
     waits for one trace and the longer of its compile and the other trace, and the
     whole-image program, the larger, compiles while the levels before it run (its first
     step finds the executable: JAX keeps it). The first compile's error is raised here;
-    the whole-image one runs in a daemon thread, so that a fit stopped early need not
-    wait for it, and should it fail, its level's first step compiles it again and raises
-    there."""
+    the whole-image one runs in a daemon thread (`Ahead`), so that a fit stopped early
+    need not wait for it, and should it fail, its error is raised when its level begins
+    (`Ahead.wait`)."""
     if len(pyramid) < 2 or not pyramid[-1].whole:
         return None
     with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="compile first") as pool:
         first = pool.submit(lower(pyramid[0]).compile)
-        thread = threading.Thread(target=lower(pyramid[-1]).compile, name="compile ahead", daemon=True)
+        thread = Ahead(lower(pyramid[-1]).compile)
         thread.start()
         first.result()  # its error, if any, is raised here
     return thread
@@ -279,7 +301,7 @@ class Stepper:
         f_struct, aux_struct = jax.eval_shape(lambda: self.fn(y, args))
         return self.solver.init(self.fn, y, args, self.options, f_struct, aux_struct, frozenset())
 
-    def compile_ahead(self, y, pyramid) -> threading.Thread | None:
+    def compile_ahead(self, y, pyramid) -> Ahead | None:
         """`compile_ahead` of `step` at y over the levels `pyramid`."""
 
         def lower(samples):

@@ -51,11 +51,11 @@ class _Level:
         self.name, self.whole = name, whole
 
 
-def _ahead(fail: bool = False):
+def _ahead(fail: str = ""):
     """`fitting.solvers.compile_ahead` over a coarse and a whole-image level whose traces
     and compiles are logged: the whole-image trace waits (up to 5 s) for the coarse
     compile to begin, logging "overlapped" if it did, and that compile for the trace to
-    end; it raises when `fail`. → (its return, the log)."""
+    end; the level named `fail` raises. → (its return, the log)."""
     from fitting.solvers import compile_ahead
 
     log, compiling, traced = [], threading.Event(), threading.Event()
@@ -69,8 +69,8 @@ def _ahead(fail: bool = False):
                 compiling.set()
                 traced.wait(5)
             log.append(f"compiled {self.name}")
-            if fail and self.name == "coarse":
-                raise RuntimeError("out of memory")
+            if fail == self.name:
+                raise RuntimeError(f"out of memory compiling {self.name}")
 
     def lower(level):
         if level.name == "whole":
@@ -94,8 +94,21 @@ def test_compile_ahead_traces_each_level_beside_a_compile():
 
 
 def test_compile_ahead_raises_the_first_compiles_error():
-    with pytest.raises(RuntimeError, match="out of memory"):
-        _ahead(fail=True)
+    with pytest.raises(RuntimeError, match="out of memory compiling coarse"):
+        _ahead(fail="coarse")
+
+
+def test_compile_ahead_keeps_the_whole_image_compiles_error_for_its_level(monkeypatch):
+    """The whole-image level's compile fails in its thread: the thread does not report it
+    (`threading.excepthook` printed its traceback); its level raises the error when it
+    waits for it."""
+    unhandled = []
+    monkeypatch.setattr(threading, "excepthook", unhandled.append)
+    thread, log = _ahead(fail="whole")
+    thread.join(30)
+    assert "compiled whole" in log and unhandled == []
+    with pytest.raises(RuntimeError, match="out of memory compiling whole"):
+        thread.wait()
 
 
 def test_compile_ahead_needs_a_whole_image_level_after_others():
