@@ -158,40 +158,34 @@ def cmd_render(args) -> int:
     ready: dict[int, tuple[object, float]] = {}
     for i, (frame, path) in enumerate(plan):
         try:
-            if i not in ready:
-                chunk = chunks[chunk_of[i]]
-                start = time.perf_counter()
-                with args.interrupts.deferring():
-                    images = render_chunk([scenes[j] for j in chunk], **options)
-                    jax.block_until_ready(images)
-                share = (time.perf_counter() - start) / len(chunk)
-                ready.update({j: (image, share) for j, image in zip(chunk, images)})
-            image, elapsed = ready.pop(i)
-            # Clamp, round and refuse non-finite values before anything touches the disk.
-            pixels = to_uint8(image)
-            del image
-            written = [path]
-            if args.png and not path.lower().endswith(".png"):
-                written.append(os.path.splitext(path)[0] + ".png")
-            if writer:
-                folder = os.path.dirname(path)
-                if folder:
-                    os.makedirs(folder, exist_ok=True)
-                save_image(path, pixels, assignment_order=args.assignment_order)
-                if len(written) > 1:
-                    save_image(written[1], pixels)
+            with _out_of_memory():
+                if i not in ready:
+                    chunk = chunks[chunk_of[i]]
+                    start = time.perf_counter()
+                    with args.interrupts.deferring():
+                        images = render_chunk([scenes[j] for j in chunk], **options)
+                        jax.block_until_ready(images)
+                    share = (time.perf_counter() - start) / len(chunk)
+                    ready.update({j: (image, share) for j, image in zip(chunk, images)})
+                image, elapsed = ready.pop(i)
+                # Clamp, round and refuse non-finite values before anything touches the disk.
+                pixels = to_uint8(image)
+                del image
+                written = [path]
+                if args.png and not path.lower().endswith(".png"):
+                    written.append(os.path.splitext(path)[0] + ".png")
+                if writer:
+                    folder = os.path.dirname(path)
+                    if folder:
+                        os.makedirs(folder, exist_ok=True)
+                    save_image(path, pixels, assignment_order=args.assignment_order)
+                    if len(written) > 1:
+                        save_image(written[1], pixels)
         except RtjaxError as e:
             raise DeckError(deck.path, frame.line, f"rend {shown(frame.output)}: {e}") from None
         except OSError as e:
             where = f"{e.filename}: " if e.filename else ""
             raise DeckError(deck.path, frame.line, f"rend {shown(frame.output)}: {where}{e.strerror or e}") from None
-        except MemoryError:
-            raise DeckError(deck.path, frame.line, f"rend {shown(frame.output)}: out of memory") from None
-        except RuntimeError as e:  # XLA's allocator: RESOURCE_EXHAUSTED
-            if "RESOURCE_EXHAUSTED" not in str(e):
-                raise
-            detail = _one_line(e)[:200]
-            raise DeckError(deck.path, frame.line, f"rend {shown(frame.output)}: out of memory ({detail})") from None
         s = frame.scene.structure
         if writer:
             print(f"{' + '.join(written)}  {s.width}x{s.height}  {elapsed:.2f} s", flush=True)
@@ -303,8 +297,9 @@ def cmd_fit(args) -> int:
         match_size(scene, image)
     fitting.Selection(frame.scene, args.free, args.spheres)
     progress.start(args.cache)
+    height, width = images[0].shape[:2]
     try:
-        with args.interrupts.deferring():
+        with args.interrupts.deferring(), _out_of_memory(f"fitting at {width}×{height} pixels: "):
             if several:
                 multi = fitting.fit_multistart(frame.scene, images[0], args.free, starts=args.starts, seed=args.seed,
                                                spread=args.spread, devices=args.devices, spheres=args.spheres,
@@ -340,6 +335,21 @@ def _check_output_folder(folder: str, what: str) -> None:
         raise RtjaxError(f"{folder}: cannot write {what} there: {path} is not a folder")
     if not os.access(path, os.W_OK | os.X_OK):
         raise RtjaxError(f"{folder}: cannot write {what} there: {path} is not writable")
+
+
+@contextlib.contextmanager
+def _out_of_memory(what: str = "") -> Iterator[None]:
+    """Running out of memory (Python's MemoryError, or XLA's allocator: a RuntimeError
+    saying RESOURCE_EXHAUSTED) becomes one line, `what` then "out of memory (XLA's
+    words)": too large a job for the machine is the input's size, not a bug."""
+    try:
+        yield
+    except MemoryError:
+        raise RtjaxError(f"{what}out of memory") from None
+    except RuntimeError as e:
+        if "RESOURCE_EXHAUSTED" not in str(e):
+            raise
+        raise RtjaxError(f"{what}out of memory ({_one_line(e)[:200]})") from None
 
 
 @contextlib.contextmanager

@@ -382,6 +382,25 @@ def test_out_of_memory_is_one_line(tmp_path, capsys, monkeypatch):
     assert not (tmp_path / "out").exists()
 
 
+def test_a_fit_out_of_memory_is_one_line(tmp_path, capsys, monkeypatch):
+    """XLA's allocator failing in a fit (a target too large for the machine) is one line
+    naming the fit's size, exit 2, nothing written (it was a traceback)."""
+    import fitting
+
+    def oom(*args, **kw):
+        raise RuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 123456789 bytes.\nmore detail")
+
+    monkeypatch.setattr(fitting, "fit", oom)
+    deck = write_deck(tmp_path, SMALL + "rend a.ras\n")
+    Image.fromarray(np.zeros((12, 16, 3), np.uint8)).save(tmp_path / "t.png")
+    code = cli.main(["fit", deck, str(tmp_path / "t.png"), "-o", str(tmp_path / "out" / "f.dat"), "--quiet"])
+    captured = capsys.readouterr()
+    assert code == 2 and captured.out == ""
+    line = one_error_line(captured.err, "fitting at 16×12 pixels: out of memory (RESOURCE_EXHAUSTED")
+    assert line.endswith("bytes. more detail)")
+    assert not (tmp_path / "out").exists()
+
+
 def test_edges_reaches_the_renderer(tmp_path, capsys, monkeypatch):
     import jax.numpy as jnp
 
