@@ -374,7 +374,7 @@ def cmd_bench(args) -> int:
     if not deck.frames:
         raise DeckError(deck.path, None, "the deck has no rend line: nothing to measure")
     _check_output_folder(args.outdir, "the benchmark's outputs")
-    with _writing(args.outdir, "the benchmark's outputs", "its table is printed above"):
+    with _writing(args.outdir, "the benchmark's outputs", "its table is printed above"), _out_of_memory("rtjax bench: "):
         main_bench(args.deck, quick=args.quick, scale=args.scale, outdir=args.outdir)
     return 0
 

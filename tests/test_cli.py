@@ -382,21 +382,26 @@ def test_out_of_memory_is_one_line(tmp_path, capsys, monkeypatch):
     assert not (tmp_path / "out").exists()
 
 
-def test_a_fit_out_of_memory_is_one_line(tmp_path, capsys, monkeypatch):
-    """XLA's allocator failing in a fit (a target too large for the machine) is one line
-    naming the fit's size, exit 2, nothing written (it was a traceback)."""
+@pytest.mark.parametrize("command, says", [("fit", "fitting at 16×12 pixels: "), ("bench", "rtjax bench: ")])
+def test_fit_and_bench_out_of_memory_is_one_line(tmp_path, capsys, monkeypatch, command, says):
+    """XLA's allocator failing in a fit or a benchmark (too large for the machine) is one
+    line, exit 2, nothing written (it was a traceback)."""
     import fitting
+    import rtjax.bench
 
     def oom(*args, **kw):
         raise RuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 123456789 bytes.\nmore detail")
 
     monkeypatch.setattr(fitting, "fit", oom)
+    monkeypatch.setattr(rtjax.bench, "main_bench", oom)
     deck = write_deck(tmp_path, SMALL + "rend a.ras\n")
     Image.fromarray(np.zeros((12, 16, 3), np.uint8)).save(tmp_path / "t.png")
-    code = cli.main(["fit", deck, str(tmp_path / "t.png"), "-o", str(tmp_path / "out" / "f.dat"), "--quiet"])
+    args = [str(tmp_path / "t.png"), "-o", str(tmp_path / "out" / "f.dat"), "--quiet"] if command == "fit" else [
+        "-o", str(tmp_path / "out")]
+    code = cli.main([command, deck, *args])
     captured = capsys.readouterr()
     assert code == 2 and captured.out == ""
-    line = one_error_line(captured.err, "fitting at 16×12 pixels: out of memory (RESOURCE_EXHAUSTED")
+    line = one_error_line(captured.err, says + "out of memory (RESOURCE_EXHAUSTED")
     assert line.endswith("bytes. more detail)")
     assert not (tmp_path / "out").exists()
 
