@@ -364,7 +364,7 @@ def test_cli_fit_bad_input_is_one_line(tmp_path, truth):
     rtjax.save_image(tmp_path / "square.png", np.zeros((64, 64, 3)))
     proc = subprocess.run([sys.executable, "-m", "rtjax", "fit", str(tmp_path / "start.dat"), str(tmp_path / "square.png")],
                           capture_output=True, text=True, cwd=ROOT, timeout=300)
-    assert proc.returncode == 2 and "aspect" in proc.stderr and "Traceback" not in proc.stderr
+    assert proc.returncode == 2 and "aspect" in proc.stderr and "Traceback" not in proc.stderr and proc.stdout == ""
     assert len(proc.stderr.strip().splitlines()) == 1
     rtjax.save_image(tmp_path / "t.png", np.zeros((truth.structure.height, truth.structure.width, 3)))
     proc = subprocess.run([sys.executable, "-m", "rtjax", "fit", str(tmp_path / "start.dat"), str(tmp_path / "t.png"),
