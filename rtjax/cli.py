@@ -247,7 +247,7 @@ class _Progress:
 def cmd_fit(args) -> int:
     """`rtjax fit`: fit a deck's free parameters to a target image, write the results."""
     import fitting
-    from fitting.objective import match_size
+    from fitting.objective import match_size, prepare_mask
     from fitting.report import add_to_report, save_outputs, summary_line, table_text
 
     from .deck import load_deck
@@ -295,6 +295,7 @@ def cmd_fit(args) -> int:
     images = [fitting.load_target(t, assignment_order=args.assignment_order) for t in targets]
     for scene, image in zip(scenes, images):
         match_size(scene, image)
+        prepare_mask(args.mask, *image.shape[:2])
     fitting.Selection(frame.scene, args.free, args.spheres)
     progress.start(args.cache)
     height, width = images[0].shape[:2]

@@ -266,14 +266,16 @@ def test_bad_fit_options_are_one_line(tmp_path, capsys, argv, says):
     ("square.png", [], "the aspect ratios differ"),
     ("right.png", ["--spheres", "7"], "sphere index 7 is out of range"),
     ("right.png", ["--free", "textures"], "the scene has no textured spheres"),
+    ("right.png", ["--mask", "square.png"], "the mask is 16×16, the target 16×12"),
 ])
 def test_bad_fit_inputs_are_refused_before_the_wait(tmp_path, capsys, target, argv, says):
-    """A target that cannot be read or is of the wrong shape, and a selection the deck
-    lacks, are one line and exit 2 before the line that says the first step waits for
-    the compile (that line came first, then the error)."""
+    """A target that cannot be read or is of the wrong shape, a mask that does not fit it,
+    and a selection the deck lacks, are one line and exit 2 before the line that says
+    the first step waits for the compile (that line came first, then the error)."""
     deck = write_deck(tmp_path, SMALL + "rend a.ras\n")
     Image.fromarray(np.zeros((16, 16, 3), np.uint8)).save(tmp_path / "square.png")
     Image.fromarray(np.zeros((12, 16, 3), np.uint8)).save(tmp_path / "right.png")
+    argv = [str(tmp_path / a) if a.endswith(".png") else a for a in argv]
     code = cli.main(["fit", deck, str(tmp_path / target), "-o", str(tmp_path / "out" / "f.dat"), *argv])
     captured = capsys.readouterr()
     assert code == 2 and captured.out == ""
