@@ -372,34 +372,24 @@ def test_allow_large_without_rendering_a_huge_image(tmp_path, capsys, monkeypatc
     assert cli.MAX_SIDE == 16384
 
 
-def test_out_of_memory_is_one_line(tmp_path, capsys, monkeypatch):
-    def oom(scene, **kw):
-        raise RuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 123456789 bytes.\nmore detail")
-
-    monkeypatch.setattr(rtjax.batch, "render", oom)
-    deck = write_deck(tmp_path, SMALL + "rend a.ras\n")
-    code, stdout, err = render_main(capsys, deck, "-o", tmp_path / "out")
-    assert code == 2 and stdout == ""
-    assert "out of memory (RESOURCE_EXHAUSTED" in one_error_line(err, "d.dat:12: rend a.ras: ")
-    assert not (tmp_path / "out").exists()
-
-
-@pytest.mark.parametrize("command, says", [("fit", "fitting at 16×12 pixels: "), ("bench", "rtjax bench: ")])
-def test_fit_and_bench_out_of_memory_is_one_line(tmp_path, capsys, monkeypatch, command, says):
-    """XLA's allocator failing in a fit or a benchmark (too large for the machine) is one
-    line, exit 2, nothing written (it was a traceback)."""
+@pytest.mark.parametrize("command, says", [("render", "d.dat:12: rend a.ras: "), ("fit", "fitting at 16×12 pixels: "),
+                                            ("bench", "rtjax bench: ")])
+def test_out_of_memory_is_one_line(tmp_path, capsys, monkeypatch, command, says):
+    """XLA's allocator failing in a render, a fit or a benchmark (too large for the
+    machine) is one line, exit 2, nothing written (a fit's and a benchmark's were
+    tracebacks)."""
     import fitting
     import rtjax.bench
 
     def oom(*args, **kw):
         raise RuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 123456789 bytes.\nmore detail")
 
-    monkeypatch.setattr(fitting, "fit", oom)
-    monkeypatch.setattr(rtjax.bench, "main_bench", oom)
+    for module, name in ((rtjax.batch, "render"), (fitting, "fit"), (rtjax.bench, "main_bench")):
+        monkeypatch.setattr(module, name, oom)
     deck = write_deck(tmp_path, SMALL + "rend a.ras\n")
     Image.fromarray(np.zeros((12, 16, 3), np.uint8)).save(tmp_path / "t.png")
-    args = [str(tmp_path / "t.png"), "-o", str(tmp_path / "out" / "f.dat"), "--quiet"] if command == "fit" else [
-        "-o", str(tmp_path / "out")]
+    args = {"render": ["-o", str(tmp_path / "out")], "bench": ["-o", str(tmp_path / "out")],
+            "fit": [str(tmp_path / "t.png"), "-o", str(tmp_path / "out" / "f.dat"), "--quiet"]}[command]
     code = cli.main([command, deck, *args])
     captured = capsys.readouterr()
     assert code == 2 and captured.out == ""
