@@ -7,7 +7,6 @@ optimistix result comes back as an integer code of this module's own table (`RES
 
 from __future__ import annotations
 
-import concurrent.futures
 import threading
 from typing import Any, Callable, NamedTuple
 
@@ -168,13 +167,14 @@ def staged_jacobian(s: Stages, y: dict):
 
 
 class Ahead(threading.Thread):
-    """A daemon thread that compiles a program ahead of its use (`compile_ahead`). Its
-    error is kept for `wait`, not printed by the thread: it belongs to the fit, raised
-    where the fit needs the program."""
+    """A daemon thread, started at once, that compiles a program ahead of its use
+    (`compile_ahead`). Its error is kept for `wait`, not printed by the thread: it
+    belongs to the fit, raised where the fit needs the program."""
 
-    def __init__(self, compile: Callable[[], object]):
-        super().__init__(name="compile ahead", daemon=True)
+    def __init__(self, compile: Callable[[], object], name: str = "compile ahead"):
+        super().__init__(name=name, daemon=True)
         self._compile, self.error = compile, None
+        self.start()
 
     def run(self) -> None:
         try:
@@ -198,18 +198,16 @@ def compile_ahead(lower, pyramid) -> Ahead | None:
     lock and XLA's compile does not, so each trace overlaps a compile: the first step
     waits for one trace and the longer of its compile and the other trace, and the
     whole-image program, the larger, compiles while the levels before it run (its first
-    step finds the executable: JAX keeps it). The first compile's error is raised here;
-    the whole-image one runs in a daemon thread (`Ahead`), so that a fit stopped early
-    need not wait for it, and should it fail, its error is raised when its level begins
-    (`Ahead.wait`)."""
+    step finds the executable: JAX keeps it). Both compile in `Ahead` threads: the first
+    is awaited here, its error raised; the whole-image one is returned unawaited, so
+    that a fit stopped early need not wait for it, and should it fail, its error is
+    raised when its level begins (`Ahead.wait`)."""
     if len(pyramid) < 2 or not pyramid[-1].whole:
         return None
-    with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="compile first") as pool:
-        first = pool.submit(lower(pyramid[0]).compile)
-        thread = Ahead(lower(pyramid[-1]).compile)
-        thread.start()
-        first.result()  # its error, if any, is raised here
-    return thread
+    first = Ahead(lower(pyramid[0]).compile, "compile first")
+    ahead = Ahead(lower(pyramid[-1]).compile)
+    first.wait()
+    return ahead
 
 
 class Step(NamedTuple):
