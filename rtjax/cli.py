@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import os
 import signal
 import sys
@@ -291,11 +292,14 @@ def cmd_fit(args) -> int:
     if several and (several_frames or args.smooth):
         raise RtjaxError("--starts and --devices fit one frame without --smooth: give one target")
     scenes = [deck.frames[k].scene for k in chosen]
-    # what can be refused is refused before the line that says the first step waits
+    # what can be refused is refused before the line that says the first step waits;
+    # the fit is given what was read (targets, the mask's weights), not the files again
     images = [fitting.load_target(t, assignment_order=args.assignment_order) for t in targets]
+    mask = args.mask
     for scene, image in zip(scenes, images):
         match_size(scene, image)
-        prepare_mask(args.mask, *image.shape[:2])
+        mask = None if mask is None else prepare_mask(mask, *image.shape[:2])
+    options = dataclasses.replace(options, mask=mask)
     fitting.Selection(frame.scene, args.free, args.spheres)
     progress.start(args.cache)
     height, width = images[0].shape[:2]

@@ -283,6 +283,30 @@ def test_bad_fit_inputs_are_refused_before_the_wait(tmp_path, capsys, target, ar
     assert not (tmp_path / "out").exists()
 
 
+def test_fit_is_given_the_target_and_mask_as_read(tmp_path, capsys, monkeypatch):
+    """`rtjax fit` reads the target and the mask once, before it says it waits, and hands
+    the fit their pixels and weights (the mask's dark pixels weigh 0)."""
+    import fitting
+
+    seen = {}
+
+    def fit(scene, target, free, *, spheres, options, callback):
+        seen.update(target=target, mask=options.mask)
+        raise fitting.FitError("stopped here")
+
+    monkeypatch.setattr(fitting, "fit", fit)
+    deck = write_deck(tmp_path, SMALL + "rend a.ras\n")
+    pixels = np.arange(12 * 16 * 3, dtype=np.uint8).reshape(12, 16, 3)
+    Image.fromarray(pixels).save(tmp_path / "t.png")
+    dark = np.full((12, 16), 255, np.uint8)
+    dark[:, :5] = 0
+    Image.fromarray(dark).save(tmp_path / "m.png")
+    code = cli.main(["fit", deck, str(tmp_path / "t.png"), "--mask", str(tmp_path / "m.png"), "--quiet"])
+    assert code == 2 and capsys.readouterr().err == "stopped here\n"
+    np.testing.assert_array_equal(seen["target"], pixels)
+    np.testing.assert_array_equal(seen["mask"][..., 0], (dark / 255.0))
+
+
 @pytest.mark.parametrize("command, flag, what", [("bench", "-o", "the benchmark's outputs"),
                                                 ("fit", "-o", "the fit's outputs")])
 def test_an_output_folder_below_a_file_is_refused_first(tmp_path, capsys, command, flag, what):
