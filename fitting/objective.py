@@ -29,6 +29,10 @@ NUISANCE = ("gain", "gamma", "blur", "chroma", "order")
 #: 'order', a share): no gain or gamma change; a Gaussian blur of σ = 0.3 pixels; a
 #: further chroma blur of 0.5 pixels; the blur half before, half after the response.
 NUISANCE_START = {"gain": 1.0, "gamma": 1.0, "blur": 0.3, "chroma": 0.5, "order": 0.5}
+#: The whole-image levels' render (`rtjax.render`'s options): the silhouette-aware mode
+#: with 1-pixel boxes, one box per pixel whatever the image's size (the fits were measured
+#: so; on small images sub-boxes cost the gradient's compile half as much again).
+WHOLE_IMAGE_RENDER = {"edges": 1.0, "subdivide": 0}
 #: Static radius (pixels) of the Gaussian kernels `camera` applies: exact to σ ≈ 2.7.
 BLUR_RADIUS = 8
 #: JPEG's RGB → YCbCr (ITU-R BT.601, full range), and the projection of an RGB colour
@@ -436,7 +440,7 @@ class Objective:
         if self.photo is not None:
             scene = rtjax.Scene(scene.structure, self.photo.scene(scene.params, y["photo"]))
         if kind in ("photo whole", "whole"):
-            return rtjax.render(scene, depth=self.depth, edges=1.0)
+            return rtjax.render(scene, depth=self.depth, **WHOLE_IMAGE_RENDER)
         if kind == "sided":
             return rtjax.edge_samples(scene, samples.xy, step=samples.step, depth=self.depth, edges=samples.width)
         edges = 0.0 if kind == "plain" else samples.width

@@ -53,7 +53,7 @@ import numpy as np
 
 import rtjax
 
-from .objective import chroma_blur, gaussian_blur
+from .objective import WHOLE_IMAGE_RENDER, chroma_blur, gaussian_blur
 
 #: The exponent that decodes the deck's colours to linear light (the photo's renderer lit
 #: them as sRGB values), and encodes the render back.
@@ -272,7 +272,7 @@ class Photo:
         and camera from `y`): the silhouette-aware render (edges 1 pixel wide) through
         `camera`. What a photo fit's full-size level matches."""
         shown = rtjax.Scene(scene.structure, self.scene(scene.params, y))
-        return self.camera(rtjax.render(shown, depth=depth, edges=1.0), y)
+        return self.camera(rtjax.render(shown, depth=depth, **WHOLE_IMAGE_RENDER), y)
 
     def camera_at(self, colours, xy, y: dict):
         """The camera at sample positions xy (K, 2) whose colours (K, 3) were box-filtered

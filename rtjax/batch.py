@@ -251,7 +251,7 @@ def render_batch(
     dtype=None,
     edges: float = 0.0,
     tile: int | None = None,
-    subdivide: int | bool = 0,
+    subdivide: int | bool | None = None,
     devices=None,
     split: str = "auto",
     mode: str = "auto",
@@ -300,7 +300,7 @@ def render_batch(
 
 
 def render_sharded(scene: Scene, *, devices="all", depth: int | None = None, spp: int = 1, dtype=None,
-                   edges: float = 0.0, tile: int | None = None, subdivide: int | bool = 0):
+                   edges: float = 0.0, tile: int | None = None, subdivide: int | bool | None = None):
     """One image (H, W, 3) with its pixels sharded over `devices` (default every
     device): equal to `rtjax.render(scene)` bit for bit; on one device it is that.
 
@@ -336,7 +336,7 @@ def plan_batches(scenes: Sequence[Scene], devices: int = 1, batch: int | None = 
     return out
 
 
-def render_chunk(scenes: Sequence[Scene], *, depth=None, spp=1, dtype=None, edges=0.0, tile=None, subdivide=0,
+def render_chunk(scenes: Sequence[Scene], *, depth=None, spp=1, dtype=None, edges=0.0, tile=None, subdivide=None,
                  devices=None, mode: str = "auto") -> list:
     """Images of scenes that share one structure, in one call: `render_batch` of their
     stacked params; a lone scene is `render_sharded` (on one device, `rtjax.render`)."""
@@ -362,7 +362,7 @@ def render_frames(
     dtype=None,
     edges: float = 0.0,
     tile: int | None = None,
-    subdivide: int | bool = 0,
+    subdivide: int | bool | None = None,
     devices=None,
     batch: int | None = None,
     mode: str = "auto",

@@ -18,7 +18,7 @@ import time
 from collections.abc import Iterator
 
 from .errors import DeckError, RtjaxError, shown
-from .render import MAX_EDGE_WIDTH, MAX_SUBDIVIDE
+from .render import EDGE_CHUNK_MIN, MAX_EDGE_WIDTH, MAX_SUBDIVIDE, SMALL_IMAGE_SUBDIVIDE
 from .xla import tune_cpu, use_compilation_cache
 
 #: Image sides beyond this need --allow-large (a typo like `size 40000` would take minutes and GBs).
@@ -407,9 +407,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--dtype", choices=("float32", "float64"), default="float32", help="arithmetic precision (default float32)")
     r.add_argument("--edges", type=_edge_width, default=0.0, metavar="WIDTH",
                    help="silhouette-aware (antialiased, edge-differentiable) mode with this edge width in pixels (default 0: off)")
-    r.add_argument("--subdivide", type=_halvings, nargs="?", const=1, default=0, metavar="N",
+    r.add_argument("--subdivide", type=_halvings, nargs="?", const=1, default=None, metavar="N",
                    help="with --edges: trace the edge pixels of mirrors and glass as 2^N x 2^N sub-boxes "
-                        "(N = 1 without a value: 2x2; 2: 4x4; see docs/EDGES.md)")
+                        f"(N = 1 without a value: 2x2; 2: 4x4; 0: none; default: {SMALL_IMAGE_SUBDIVIDE} in images "
+                        f"of at most {EDGE_CHUNK_MIN} pixels, else 0; see docs/EDGES.md)")
     r.add_argument("--png", action="store_true", help="also write a PNG preview beside each Sun raster file")
     r.add_argument("--assignment-order", action="store_true",
                    help="write Sun raster pixels R,G,B as the assignment's code did (standard viewers swap red and blue)")

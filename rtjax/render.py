@@ -25,6 +25,12 @@ MAX_DEPTH = int(jnp.iinfo(LEVEL).max)
 MAX_EDGE_WIDTH = 16.0
 #: The most halvings of a box `subdivide` takes (8 × 8 sub-boxes).
 MAX_SUBDIVIDE = 3
+#: `subdivide`'s default (None) on images of at most `EDGE_CHUNK_MIN` pixels in the
+#: silhouette-aware mode, traced past a mirror or glass sphere: 4 × 4 sub-boxes. In small images a
+#: pixel holds several of what a mirror or a glass sphere shows, and there these images
+#: are traced whole, their time kernel launches more than rays (docs/EDGES.md, "Cost");
+#: larger images keep one box, which meets the mode's cost goal.
+SMALL_IMAGE_SUBDIVIDE = 2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,7 +43,7 @@ class Options:
     dtype: jnp.dtype  # float32 or float64
     edges: float  # the silhouette-aware mode's edge width in pixels (0: pixel centres)
     tile: int  # rays traced together
-    subdivide: int = 0  # the silhouette mode: halvings of the box in the pixels of mirrors and glass
+    subdivide: int = 0  # the silhouette mode: halvings of the box in the pixels of mirrors and glass (resolved)
 
 
 def resolve_dtype(scene: Scene, dtype) -> jnp.dtype:
@@ -78,10 +84,12 @@ def default_tile() -> int:
     return 1 << 17 if jax.default_backend() == "cpu" else 1 << 20
 
 
-def resolve_subdivide(edges, subdivide: int | bool) -> int:
-    """`subdivide` as a count of halvings (True: 1, False: 0), or a clear error: a whole
-    number in [0, MAX_SUBDIVIDE], and none without the silhouette-aware mode (it divides
-    that mode's boxes)."""
+def resolve_subdivide(edges, subdivide: int | bool | None, default: int = 0) -> int:
+    """`subdivide` as a count of halvings (True: 1, False: 0, None: `default`), or a
+    clear error: a whole number in [0, MAX_SUBDIVIDE], and none without the
+    silhouette-aware mode (it divides that mode's boxes)."""
+    if subdivide is None:
+        return default
     try:
         halvings = operator.index(subdivide)
     except TypeError:
@@ -93,7 +101,15 @@ def resolve_subdivide(edges, subdivide: int | bool) -> int:
     return halvings
 
 
-def resolve_options(scene: Scene, depth, spp, dtype, edges, tile, subdivide: int | bool = 0) -> Options:
+def default_subdivide(structure: Structure, depth: int, edges: float) -> int:
+    """`subdivide` when not given: `SMALL_IMAGE_SUBDIVIDE` in the silhouette-aware mode
+    on images of at most `EDGE_CHUNK_MIN` pixels traced past a mirror or glass sphere
+    (`depth` > 0), else 0."""
+    small = structure.width * structure.height <= EDGE_CHUNK_MIN
+    return SMALL_IMAGE_SUBDIVIDE if edges and depth and small else 0
+
+
+def resolve_options(scene: Scene, depth, spp, dtype, edges, tile, subdivide: int | bool | None = None) -> Options:
     """`render`'s options checked (a clear `RtjaxError` for a bad one) and resolved;
     `render_batch` and `render_frames` share them."""
     if int(spp) != spp or spp < 1:
@@ -101,8 +117,9 @@ def resolve_options(scene: Scene, depth, spp, dtype, edges, tile, subdivide: int
     edges = float(edges)
     if not (0 <= edges <= MAX_EDGE_WIDTH):
         raise RtjaxError(f"edges (an edge width in pixels) must be in [0, {MAX_EDGE_WIDTH:g}], not {edges}")
-    return Options(resolve_depth(scene.structure, depth), int(spp), resolve_dtype(scene, dtype), edges, resolve_tile(tile),
-                   resolve_subdivide(edges, subdivide))
+    depth = resolve_depth(scene.structure, depth)
+    return Options(depth, int(spp), resolve_dtype(scene, dtype), edges, resolve_tile(tile),
+                   resolve_subdivide(edges, subdivide, default_subdivide(scene.structure, depth, edges)))
 
 
 def render(
@@ -113,7 +130,7 @@ def render(
     dtype=None,
     edges: float = 0.0,
     tile: int | None = None,
-    subdivide: int | bool = 0,
+    subdivide: int | bool | None = None,
 ) -> Float[Array, "h w 3"]:
     """Render `scene` to an (H, W, 3) image in 0..255, clamped, not rounded.
 
@@ -280,7 +297,7 @@ def render_samples(
     grid and then a band of pixels around edges with one compiled function (K fixed;
     positions, `step` and a non-zero `edges` traced). `step` is the spacing the samples
     stand for, in pixels: with `edges`, edges are box-filtered over `edges`·`step` pixels
-    (`subdivide` as `render`'s).
+    (`subdivide` as `render`'s, but 0 by default: positions are not an image).
     """
     dtype = resolve_dtype(scene, dtype)
     xy = check_positions(xy, dtype)

@@ -427,7 +427,7 @@ def test_edges_reaches_the_renderer(tmp_path, capsys, monkeypatch):
 
     calls = []
 
-    def with_edges(scene, *, depth=None, spp=1, dtype=None, edges=0.0, subdivide=0):
+    def with_edges(scene, *, depth=None, spp=1, dtype=None, edges=0.0, subdivide=None):
         calls.append((edges, spp, subdivide))
         return jnp.zeros((scene.structure.height, scene.structure.width, 3))
 
@@ -436,6 +436,6 @@ def test_edges_reaches_the_renderer(tmp_path, capsys, monkeypatch):
     assert render_main(capsys, deck, "-o", tmp_path / "out", "--edges", "1.5", "--spp", "2")[0] == 0
     assert render_main(capsys, deck, "-o", tmp_path / "out", "--edges", "1", "--subdivide")[0] == 0
     assert render_main(capsys, deck, "-o", tmp_path / "out", "--edges", "1", "--subdivide", "2")[0] == 0
-    assert calls == [(1.5, 2, 0), (1.0, 1, 1), (1.0, 1, 2)]
+    assert calls == [(1.5, 2, None), (1.0, 1, 1), (1.0, 1, 2)]  # None: `render`'s default
     code, _, err = render_main(capsys, deck, "-o", tmp_path / "out", "--subdivide")
     assert code != 0 and "subdivide needs the silhouette-aware mode" in err, err
