@@ -25,10 +25,10 @@ MAX_DEPTH = int(jnp.iinfo(LEVEL).max)
 MAX_EDGE_WIDTH = 16.0
 #: The most halvings of a box `subdivide` takes (8 × 8 sub-boxes).
 MAX_SUBDIVIDE = 3
-#: `subdivide`'s default (None) on images of at most `EDGE_CHUNK_MIN` pixels in the
-#: silhouette-aware mode, traced past a mirror or glass sphere: 4 × 4 sub-boxes. In small images a
-#: pixel holds several of what a mirror or a glass sphere shows, and there these images
-#: are traced whole, their time kernel launches more than rays (docs/EDGES.md, "Cost");
+#: `subdivide`'s default (None) in the silhouette-aware mode on images of at most
+#: `EDGE_CHUNK_MIN` pixels traced past a mirror or glass sphere: 4 × 4 sub-boxes. In
+#: small images pixels crowd with what mirrors and glass show, and such images are
+#: traced whole, at a cost of kernel launches more than rays (docs/EDGES.md, "Cost");
 #: larger images keep one box, which meets the mode's cost goal.
 SMALL_IMAGE_SUBDIVIDE = 2
 
