@@ -68,9 +68,10 @@ def varied(name: str, s: rtjax.Scene):
     return at, len(params)
 
 
-def derivative_images(name: str, edges: float = 1.0, spp: int = 1, subdivide: int = 0):
+def derivative_images(name: str, edges: float = 1.0, spp: int = 1, subdivide: int | None = 0):
     """The mode's image (H, W, 3) and its derivative images (P, H, W, 3) by jax.jacfwd
-    (`subdivide`: `render(..., subdivide=subdivide)`, halvings of the box in mirrors and glass)."""
+    (`subdivide`: `render(..., subdivide=subdivide)`, halvings of the box in mirrors and
+    glass; None: `render`'s default)."""
     s = scene(name)
     at, n = varied(name, s)
     depth = DECKS[name][1]
@@ -84,7 +85,7 @@ def derivative_images(name: str, edges: float = 1.0, spp: int = 1, subdivide: in
     return np.asarray(image), np.moveaxis(np.asarray(jac), -1, 0)
 
 
-def own_differences(name: str, step: float, edges: float = 1.0, subdivide: int = 0) -> np.ndarray:
+def own_differences(name: str, step: float, edges: float = 1.0, subdivide: int | None = 0) -> np.ndarray:
     """Central differences (P, H, W, 3) of the mode's own image, each parameter stepped by
     `step` pixels of image motion: what its jacfwd must equal as the step goes to 0,
     wherever no discrete choice (an edge, a hit) changes within the step."""
