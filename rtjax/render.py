@@ -105,8 +105,7 @@ def default_subdivide(structure: Structure, depth: int, edges: float) -> int:
     """`subdivide` when not given: `SMALL_IMAGE_SUBDIVIDE` in the silhouette-aware mode
     on images of at most `EDGE_CHUNK_MIN` pixels traced past a mirror or glass sphere
     (`depth` > 0), else 0."""
-    small = structure.width * structure.height <= EDGE_CHUNK_MIN
-    return SMALL_IMAGE_SUBDIVIDE if edges and depth and small else 0
+    return SMALL_IMAGE_SUBDIVIDE if edges and depth and traced_whole(structure) else 0
 
 
 def resolve_options(scene: Scene, depth, spp, dtype, edges, tile, subdivide: int | bool | None = None) -> Options:
@@ -178,7 +177,7 @@ def render_image(s: Structure, p: Params, options: Options) -> Float[Array, "h w
     step = jnp.asarray(1 / options.spp, p.eye.dtype)
 
     def sample(offset):
-        if options.edges and s.width * s.height > EDGE_CHUNK_MIN:  # smaller: every pixel in one chunk
+        if options.edges and not traced_whole(s):
             return image_edges(s, p, offset, step, options, reach=math.ceil(options.edges / options.spp / 2))
         mode = BOX if options.edges else PLAIN
         xy = pixel_grid(s.width, s.height, offset)
@@ -199,6 +198,12 @@ def render_image(s: Structure, p: Params, options: Options) -> Float[Array, "h w
 #: `EDGE_CHUNK_MIN` pixels are traced in the mode whole.
 EDGE_CHUNKS = 16
 EDGE_CHUNK_MIN = 4096
+
+
+def traced_whole(s: Structure) -> bool:
+    """Whether the silhouette mode traces every pixel of `s`'s image in one chunk (at
+    most `EDGE_CHUNK_MIN` pixels) rather than the pixels near edges (`image_edges`)."""
+    return s.width * s.height <= EDGE_CHUNK_MIN
 
 
 def image_edges(s: Structure, p: Params, offset, step, options: Options, reach: int):
