@@ -83,11 +83,12 @@ print("on the Pareto front (nothing both faster and more accurate), fastest firs
 #   narrower (0.5) leaves more aliasing, wider (2) blurs. Its purpose is
 #   derivatives through edges (`fitting` renders with it); the antialiasing comes
 #   with it.
-# * **subdivide**: the same mode with the edge pixels of mirrors and glass split into
-#   2×2 or 4×4 sub-boxes, each with its own nearest edge (`render(..., subdivide=n)`):
-#   inside mirrors and glass one straight edge per pixel is a poor model, and the
-#   sub-boxes take the error below 4×4 supersampling's, for less time. They were made
-#   for derivatives there (docs/EDGES.md); the antialiasing again comes with them.
+# * **subdivide**: the same mode with the pixels an edge may cross split into 2×2 or
+#   4×4 sub-boxes, each with its own nearest edge (`render(..., subdivide=n)`): where a
+#   pixel holds several edges, and inside mirrors and glass, one straight edge per
+#   pixel is a poor model, and the sub-boxes take the error below 4×4 supersampling's,
+#   for less time. They were made for derivatives there (docs/EDGES.md); the
+#   antialiasing again comes with them.
 # * **scale**: fewer pixels are the fastest renders, but upsampled back to full
 #   size their error is large: previews.
 #

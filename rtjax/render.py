@@ -26,10 +26,10 @@ MAX_EDGE_WIDTH = 16.0
 #: The most halvings of a box `subdivide` takes (8 × 8 sub-boxes).
 MAX_SUBDIVIDE = 3
 #: `subdivide`'s default (None) in the silhouette-aware mode on images of at most
-#: `EDGE_CHUNK_MIN` pixels traced past a mirror or glass sphere: 4 × 4 sub-boxes. In
-#: small images pixels crowd with what mirrors and glass show, and such images are
-#: traced whole, at a cost of kernel launches more than rays (docs/EDGES.md, "Cost");
-#: larger images keep one box, which meets the mode's cost goal.
+#: `EDGE_CHUNK_MIN` pixels: 4 × 4 sub-boxes. In small images a pixel often holds
+#: several edges (an outline and its shadow, what mirrors and glass show), and such
+#: images are traced whole, at a cost of kernel launches more than rays (docs/EDGES.md,
+#: "Cost"); larger images keep one box, which meets the mode's cost goal.
 SMALL_IMAGE_SUBDIVIDE = 2
 
 
@@ -43,7 +43,7 @@ class Options:
     dtype: jnp.dtype  # float32 or float64
     edges: float  # the silhouette-aware mode's edge width in pixels (0: pixel centres)
     tile: int  # rays traced together
-    subdivide: int = 0  # the silhouette mode: halvings of the box in the pixels of mirrors and glass (resolved)
+    subdivide: int = 0  # the silhouette mode: halvings of the box in the pixels an edge may cross (resolved)
 
 
 def resolve_dtype(scene: Scene, dtype) -> jnp.dtype:
@@ -101,11 +101,10 @@ def resolve_subdivide(edges, subdivide: int | bool | None, default: int = 0) -> 
     return halvings
 
 
-def default_subdivide(structure: Structure, depth: int, edges: float) -> int:
+def default_subdivide(structure: Structure, edges: float) -> int:
     """`subdivide` when not given: `SMALL_IMAGE_SUBDIVIDE` in the silhouette-aware mode
-    on images of at most `EDGE_CHUNK_MIN` pixels traced past a mirror or glass sphere
-    (`depth` > 0), else 0."""
-    return SMALL_IMAGE_SUBDIVIDE if edges and depth and traced_whole(structure) else 0
+    on images of at most `EDGE_CHUNK_MIN` pixels, else 0."""
+    return SMALL_IMAGE_SUBDIVIDE if edges and traced_whole(structure) else 0
 
 
 def resolve_options(scene: Scene, depth, spp, dtype, edges, tile, subdivide: int | bool | None = None) -> Options:
@@ -118,7 +117,7 @@ def resolve_options(scene: Scene, depth, spp, dtype, edges, tile, subdivide: int
         raise RtjaxError(f"edges (an edge width in pixels) must be in [0, {MAX_EDGE_WIDTH:g}], not {edges}")
     depth = resolve_depth(scene.structure, depth)
     return Options(depth, int(spp), resolve_dtype(scene, dtype), edges, resolve_tile(tile),
-                   resolve_subdivide(edges, subdivide, default_subdivide(scene.structure, depth, edges)))
+                   resolve_subdivide(edges, subdivide, default_subdivide(scene.structure, edges)))
 
 
 def render(
@@ -142,12 +141,14 @@ def render(
       `edges` pixels (1 = the pixel's own box), so the image is antialiased at edges and
       its derivative includes their motion (see `rtjax.edges`). 0 (default) renders
       pixel centres. The mode is spent where edges are (`image_edges`).
-    subdivide: with `edges`, the pixels whose edge is seen in a mirror or through glass (or
-      is a mirror's or glass sphere's outline, or a shadow edge seen past one) are
-      box-filtered as the mean of k × k sub-boxes, k = 2^`subdivide` (1 or True: 2 × 2;
-      2: 4 × 4), each with its own nearest edge (`trace.trace_edges`): derivatives far
-      closer to the truth inside mirrors and glass, at about twice the mode's cost for
-      2 × 2 and four to five times for 4 × 4 (docs/EDGES.md).
+    subdivide: with `edges`, the pixels whose box an edge may cross (a silhouette or an
+      intersection curve, seen directly, in a mirror or through glass, or a shadow edge
+      seen past one) are box-filtered as the mean of k × k sub-boxes, k = 2^`subdivide`
+      (1 or True: 2 × 2; 2: 4 × 4; 3: 8 × 8), each with its own nearest edge
+      (`trace.trace_edges`): derivatives far closer to the truth where a pixel holds
+      several edges and inside mirrors and glass, at several times the mode's cost.
+      None (default): 4 × 4 on images of at most 4,096 pixels, else one box
+      (`default_subdivide`; docs/EDGES.md).
     tile: rays traced together (default: 2¹⁷ on a CPU, 2²⁰ on an accelerator); the
       image does not depend on it, only speed and memory do.
 
@@ -265,7 +266,7 @@ def colours_at(s: Structure, p: Params, xy, step, depth: int, tile: int, mode: M
     box `width`·`step` pixels wide (`step`: the samples' spacing in pixels).
     `capacity`: the edge pixels pass 2 takes per `tile` (`trace.trace_edges`); `count`
     (traced): only the first `count` positions are wanted (`trace.tiled`); `subdivide`:
-    the box mode's halvings of the box in mirrors and glass (`trace.trace_edges`)."""
+    the box mode's halvings of the box in the pixels an edge may cross (`trace.trace_edges`)."""
     if mode == PLAIN:
         o, d = rays_through(p.eye, p.refp, p.vang, s.width, s.height, xy)
         return jnp.clip(tiled(lambda o, d: trace(s, p, o, d, depth).colour, tile, o, d), 0, 255)

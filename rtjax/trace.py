@@ -401,16 +401,16 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
     box-filtered colour; just across the edge where it passes nearest to the centre in
     sided mode. Its cost follows the edges' length, not the image's area.
 
-    Box mode, `subdivide` (static, halvings of the box; 0: none): the pixels whose edge is
-    seen in or through a mirror or glass sphere, or is the outline of one
-    (`subdivided_pixels`), are traced again as k × k sub-boxes, k = 2^`subdivide`
-    (`_subdivided`), each with its own nearest edge and sides; their blend is their
-    mean. Through a curved mirror or glass the world behind is far from linear across a
-    pixel, and one straight edge a pixel misplaces its derivative.
+    Box mode, `subdivide` (static, halvings of the box; 0: none): the pixels whose box an
+    edge may cross (`subdivided_pixels`) are traced again as k × k sub-boxes, k =
+    2^`subdivide` (`_subdivided`), each with its own nearest edge and sides; their blend
+    is their mean. A pixel may hold several edges, and through a curved mirror or glass
+    the world behind is far from linear across it: one straight edge per pixel
+    misplaces their derivatives.
     """
     n = o.shape[1]
     capacity = edge_capacity(n) if capacity is None else min(n, capacity)
-    if subdivide and mode == BOX and s.needs_secondary_rays:
+    if subdivide and mode == BOX:
         return _subdivided(s, p, (o, d, diff), depth, width, capacity, subdivide)
     return _edge_pass(s, p, (o, d, diff), depth, width, mode, capacity).samples
 
@@ -471,19 +471,19 @@ def _edge_pass(s: Structure, p: Params, primary, depth: int, width, mode: Mode, 
                                 alpha=packed.scatter(jnp.ones_like(side.alpha, shape=(n,)), side.alpha),
                                 x=packed.scatter(jnp.zeros_like(side.x, shape=(n,)), side.x), flipped=flipped,
                                 shadow_x=shadow_x)
-    return EdgePass(samples, subdivided_pixels(s, best, width) if subdivided else None)
+    return EdgePass(samples, subdivided_pixels(best, width) if subdivided else None)
 
 
-def subdivided_pixels(s: Structure, best: edges.Best, width):
+def subdivided_pixels(best: edges.Best, width):
     """Which pixels `trace_edges` subdivides into sub-boxes: those whose box (`width` sample
-    steps) the nearest silhouette may cross (within `edges.CROSSING` boxes) where it
-    lies past a mirror or glass hit (on a segment after the first) or is a mirror's or
-    a glass sphere's own outline or intersection curve, and those with a shadow edge
-    that may cross it past a mirror or glass hit (`Best.shadowed`)."""
-    kind = jnp.asarray(s.mask(MIRROR, GLASS))
-    own = kind[jnp.maximum(best.edge, 0)] | ((best.partner >= 0) & kind[jnp.maximum(best.partner, 0)])
+    steps) the nearest silhouette or intersection curve may cross (within
+    `edges.CROSSING` boxes), seen directly, in a mirror or through glass, and those with
+    a shadow edge that may cross it past a mirror or glass hit (`Best.shadowed`). Where
+    one edge crosses a box, others often lie near it (an outline and its own shadow on
+    the floor, a reflection's edges near a mirror's rim), and one straight edge per
+    pixel misplaces their derivatives."""
     crossed = (best.edge >= 0) & (best.score < edges.CROSSING * width)
-    return (crossed & ((best.rays.level > 0) | own)) | best.shadowed
+    return crossed | best.shadowed
 
 
 def sub_box_offsets(halvings: int) -> tuple[tuple[float, float], ...]:

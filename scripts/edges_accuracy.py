@@ -35,7 +35,7 @@ def main() -> None:
     ap.add_argument("--edges", type=float, default=1.0)
     ap.add_argument("--spp", type=int, default=1)
     ap.add_argument("--subdivide", type=int, nargs="?", const=1, default=0, metavar="N",
-                    help="render(..., subdivide=N): 2^N x 2^N sub-boxes in mirrors and glass (N = 1 without a value)")
+                    help="render(..., subdivide=N): 2^N x 2^N sub-boxes in the pixels an edge may cross (N = 1 without a value)")
     args = ap.parse_args()
     for name in args.scenes or list(DECKS):
         ys = yardsticks(name)

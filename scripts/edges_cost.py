@@ -1,7 +1,7 @@
 """Forward cost of the silhouette-aware mode against the plain render, side by side in
 one process (alternating runs, medians; and each one's first call, compile included):
 the ratio issue 21 bounds (≤ 3×); and of the
-mode with its 2 × 2 and 4 × 4 sub-boxes in mirrors and glass (`render(..., subdivide=1)`
+mode with its 2 × 2 and 4 × 4 sub-boxes (`render(..., subdivide=1)`
 and `subdivide=2`).
 
     python scripts/edges_cost.py [--deck scenes/ex2s3.dat] [--runs 7]

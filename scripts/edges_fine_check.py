@@ -3,8 +3,8 @@ the stored one: central differences of the reference (`rtjax.reference`) at k ×
 samples a pixel with a small step (default 32 × 32, 0.075 px of image motion), beside
 the stored yardsticks and the silhouette mode's derivative image at 1 × 1 and 2 × 2
 sub-boxes a pixel (`--modes`; jax.jvp of `render(..., edges=1, spp=s, dtype=float64)`;
-`--subdivide [N]`: also with `subdivide=N`, 2^N × 2^N sub-boxes in the pixels of mirrors
-and glass, N = 1 without a value): per-pixel cosines and the weighted sums' ratio to the
+`--subdivide [N]`: also with `subdivide=N`, 2^N × 2^N sub-boxes in the pixels an edge
+may cross, N = 1 without a value): per-pixel cosines and the weighted sums' ratio to the
 fine yardstick's.
 
     python scripts/edges_fine_check.py SCENE PARAM [--step 0.075] [--spp 32] [--modes 1,2] [--subdivide [N]]

@@ -70,7 +70,7 @@ def test_bench_json_fields_and_plausible_values(tiny_result, tmp_path):
     assert edges["rms_levels"] < default["rms_levels"]  # box-filtered edges are closer to a supersampled image
     sub = next(r for r in rows if r["knob"] == "subdivide")
     assert (sub["edges"], sub["subdivide"], sub["label"]) == (1.0, 2, "edges 1 px, 4×4 sub")
-    assert sub["rms_levels"] < edges["rms_levels"]  # sub-boxes in mirrors and glass: closer still (measured 2.28 vs 4.87)
+    assert sub["rms_levels"] < edges["rms_levels"]  # sub-boxes: closer still (measured 2.28 vs 4.87)
 
     d = data["derivatives"]
     assert (d["width"], d["height"]) == (32, data["height"]) and d["n_params_centers"] == 24

@@ -519,7 +519,7 @@ def test_whole_image_is_every_pixel_traced_in_the_mode(name):
 
 @pytest.mark.slow
 def test_whole_image_with_sub_boxes_is_every_pixel_traced_in_the_mode():
-    """The same with the 2 × 2 sub-boxes in mirrors and glass (`subdivide`): the
+    """The same with 2 × 2 sub-boxes (`subdivide`): the
     whole image's chunks subdivide the pixels that every pixel's trace does, and the
     sub-boxes change the glass scene's image."""
     s = big("glass")

@@ -35,7 +35,7 @@ pytestmark = pytest.mark.usefixtures("quick_build")
 
 
 #: The scenes checked as `render` does by default at their sizes, with 4 × 4 sub-boxes in
-#: mirrors and glass (`subdivide=None`); the others (crowded) in the one-box mode.
+#: the pixels an edge may cross (`subdivide=None`); the others (crowded) in the one-box mode.
 SUBDIVIDED = {"heldout": None, "tir": None, "overlap": None}
 
 
@@ -72,27 +72,28 @@ def test_yardsticks_agree(name):
 # (scene) → (cosine over the spheres' parameters ≥, median relative error ≤, per-pixel
 # cosine ≥), asserted against both fine yardsticks: the figures measured, with a little
 # room (docs/EDGES.md). The issue's goals (0.99, 5 %, 0.98) are met on tir and heldout,
-# but for heldout's eye x per pixel (0.978–0.980, where the two fine yardsticks agree with
-# each other to 0.981); overlap and crowded miss the median and the per-pixel cosine
+# but for heldout's eye x per pixel (0.978–0.979, where the two fine yardsticks agree with
+# each other to 0.981); overlap and crowded miss the median and the per-pixel cosine.
+# 4 × 4 is in every pixel an edge may cross; "mirrors and glass": only theirs (until stop 56)
 GOALS = {
-    "heldout": (0.9995, 0.05, 0.975),  # 4 × 4: 0.9998, 3.7–4.4 %, 0.978 (eye x) (2 × 2: 0.9985, 4.2–7.7 %, 0.976; one box: 0.9973, 3.4–5.3 %, 0.821)
-    "overlap": (0.995, 0.095, 0.95),  # 4 × 4: 0.9962, 7.2–8.6 %, 0.954 (glass x) (2 × 2: 0.9937, 9.5–10.6 %, 0.924; one box: 0.9800, 13.8–16.2 %, 0.582)
-    "tir": (0.9995, 0.02, 0.985),  # 4 × 4: 0.9999, 0.9–1.0 %, 0.991 (glass r) (2 × 2: 0.9994, 2.1–3.9 %, 0.988; one box: 0.9983, 11.0–11.3 %, 0.945)
-    "crowded": (0.988, 0.28, 0.74),  # one box: 0.9891, 26.3–26.8 %, 0.742 (mirror x) (2 × 2: 0.9895, 22.0–25.9 %, 0.863; 4 × 4: 0.9904, 23.4–25.5 %, 0.936)
+    "heldout": (0.9995, 0.05, 0.975),  # 4 × 4: 0.9997, 2.9–3.4 %, 0.978 (eye x) (mirrors and glass: 0.9998, 3.7–4.4 %, 0.978; one box: 0.9973, 3.4–5.3 %, 0.821)
+    "overlap": (0.995, 0.09, 0.95),  # 4 × 4: 0.9960, 5.8–7.0 %, 0.954 (glass x) (mirrors and glass: 0.9962, 7.2–8.6 %, 0.954; one box: 0.9800, 13.8–16.2 %, 0.582)
+    "tir": (0.9995, 0.03, 0.985),  # 4 × 4: 0.9998, 1.5–2.1 %, 0.991 (glass x) (mirrors and glass: 0.9999, 0.9–1.0 %, 0.991; one box: 0.9983, 11.0–11.3 %, 0.945)
+    "crowded": (0.988, 0.28, 0.74),  # one box: 0.9891, 26.3–26.8 %, 0.742 (mirror x) (4 × 4: 0.9904, 22.8 %, 0.936; mirrors and glass: 0.9904, 23.4–25.5 %, 0.936)
 }
 # the same against the coarse yardsticks (the issue's own kind), whose per-pixel figures
-# their steps bound: measured heldout (4 × 4) 0.9982, 4.8–12.2 %, 0.794; overlap (4 × 4)
-# 0.9717, 8.2–13.9 %, 0.679; tir (4 × 4) 0.9993, 2.4–4.8 %, 0.918; crowded 0.9889, 33.8–42.5 %, 0.721
+# their steps bound: measured heldout (4 × 4) 0.9983, 3.9–12.2 %, 0.794; overlap (4 × 4)
+# 0.9710, 7.2–13.5 %, 0.679; tir (4 × 4) 0.9988, 3.5–6.6 %, 0.919; crowded 0.9889, 33.8–42.5 %, 0.721
 COARSE_GOALS = {
     "heldout": (0.997, 0.15, 0.78),
     "overlap": (0.965, 0.16, 0.66),
-    "tir": (0.999, 0.06, 0.90),
+    "tir": (0.998, 0.08, 0.90),
     "crowded": (0.985, 0.44, 0.71),
 }
 # the image's mean distance from the supersampled one (levels): measured heldout
-# 0.253 one box, 0.141 2 × 2, 0.108 4 × 4; overlap 0.251, 0.172, 0.149; tir 0.195, 0.080,
-# 0.066; crowded (one box) 0.576
-IMAGE_GOALS = {"heldout": 0.115, "overlap": 0.16, "tir": 0.072, "crowded": 0.6}
+# 0.253 one box, 0.108 4 × 4 in mirrors and glass, 0.096 4 × 4; overlap 0.251, 0.149,
+# 0.134; tir 0.195, 0.066, 0.058; crowded (one box) 0.576
+IMAGE_GOALS = {"heldout": 0.105, "overlap": 0.145, "tir": 0.064, "crowded": 0.6}
 
 
 @pytest.mark.slow

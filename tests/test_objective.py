@@ -12,7 +12,7 @@ from conftest import scene_from_text
 import rtjax
 from fitting.errors import FitError
 from fitting.objective import (COARSE_SCALE, EXACT_SCALE, Objective, apply_nuisance, camera, edge_band, gaussian_blur, make_levels,
-                               nuisance_names, robust, schedule_widths, smooth)
+                               WHOLE_IMAGE_RENDER, nuisance_names, robust, schedule_widths, smooth)
 from fitting.options import FitOptions
 from fitting.problem import Problem
 from fitting.select import Selection
@@ -53,7 +53,7 @@ def test_exact_level_matches_a_pixel_centre_target_at_the_truth():
     y = {"scene": selection.y0()}
     order = np.lexsort(np.asarray(exact.xy).T)  # the exact level's samples in image order (rows, then columns)
     np.testing.assert_allclose(np.asarray(objective.model(y, exact))[order], plain.reshape(-1, 3), rtol=0, atol=1e-9)
-    aware = np.asarray(rtjax.render(scene, edges=1.0)).reshape(-1, 3)
+    aware = np.asarray(rtjax.render(scene, edges=1.0, subdivide=0)).reshape(-1, 3)  # the fits' one box a pixel
     np.testing.assert_allclose(np.asarray(objective.model(y, soft)), aware, rtol=0, atol=1e-9)
     assert np.abs(plain.reshape(-1, 3) - aware).max() > 10
 
@@ -231,7 +231,7 @@ def test_a_fitted_blur_is_the_whole_image_at_full_size_and_wider_edges_below():
     sigma = 0.7
     nuisance = {"blur": jnp.log(sigma), "chroma": jnp.log(0.8), "order": jnp.asarray(0.4)}
     y = {"scene": selection.y0(), "nuisance": nuisance}
-    expect = np.asarray(camera(rtjax.render(scene, edges=1.0), nuisance, logs=True))[j, i]
+    expect = np.asarray(camera(rtjax.render(scene, **WHOLE_IMAGE_RENDER), nuisance, logs=True))[j, i]
     np.testing.assert_allclose(np.asarray(objective.model(y, full)), expect, rtol=0, atol=1e-9)
     step = float(coarse.step)
     wide = np.sqrt(1 + 12 * (sigma / step) ** 2)

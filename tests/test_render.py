@@ -249,11 +249,11 @@ def test_bad_render_options():
                 sampled(s, xy)
 
 
-def test_subdivide_defaults_to_sub_boxes_in_small_images_past_mirrors_and_glass():
+def test_subdivide_defaults_to_sub_boxes_in_small_images():
     """`subdivide=None` (the default of `render` and the batched renders) resolves to 4 × 4
-    sub-boxes in the silhouette-aware mode on images of at most 4,096 pixels traced past
-    a mirror or glass sphere, where pixels crowd with edges; to one box on larger images,
-    without the mode, at depth 0, and without mirrors and glass; a given value is kept."""
+    sub-boxes in the silhouette-aware mode on images of at most 4,096 pixels, where a
+    pixel often holds several edges, with mirrors and glass or without; to one box on
+    larger images and without the mode; a given value is kept."""
     from rtjax.render import resolve_options
 
     def halvings(scene, edges=1.0, depth=None, subdivide=None):
@@ -262,8 +262,9 @@ def test_subdivide_defaults_to_sub_boxes_in_small_images_past_mirrors_and_glass(
     mirror = scene_from_text("sphe 0 0 0 10\nmirr\nsphe 0 30 0 5\nopaq 1 1 1 0 1\nplig 0 -1 0 200 100 50\n" + CAMERA)
     opaque = scene_from_text("sphe 0 0 0 10\nopaq 1 1 1 0 1\nplig 0 -1 0 200 100 50\n" + CAMERA)
     assert halvings(mirror) == 2 == halvings(mirror.resized(64))  # 11 × 11, 64 × 64 pixels
-    assert halvings(mirror.resized(65)) == 0  # 65 × 65 > 4096
-    assert halvings(mirror, edges=0.0) == halvings(mirror, depth=0) == halvings(opaque) == 0
+    assert halvings(mirror, depth=0) == halvings(opaque) == halvings(opaque.resized(64)) == 2
+    assert halvings(mirror.resized(65)) == halvings(opaque.resized(65)) == 0  # 65 × 65 > 4096
+    assert halvings(mirror, edges=0.0) == halvings(opaque, edges=0.0) == 0
     assert halvings(mirror, subdivide=0) == 0 and halvings(mirror, subdivide=True) == 1
     assert halvings(mirror.resized(200), subdivide=3) == 3
     # the default is that value's program: the same options key the same compiled render

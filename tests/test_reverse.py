@@ -89,7 +89,7 @@ def assert_dot_products(image, p, structure, least: float) -> np.ndarray:
 
 @pytest.mark.slow
 def test_reverse_equals_forward_with_sub_boxes():
-    """The silhouette mode with its sub-boxes in mirrors and glass (2 × 2, the same
+    """The silhouette mode with its sub-boxes (2 × 2, the same
     program as the 4 × 4 of `render`'s default on an image this small, at half its
     cost here): reverse mode equals forward mode (dot products, float64), on a mirror
     scene where the sub-boxes change the image."""

@@ -15,7 +15,7 @@ class Config:
     - `dtypes`, `depths`, `spps`, `edges`, `scales`: the values each knob takes alone
       from the default render (`depths` only for decks with mirrors or glass).
     - `subdivides`: the 1-pixel silhouette-aware mode with these halvings of the box in
-      the edge pixels of mirrors and glass (`render`'s `subdivide`; decks with them only).
+      the pixels an edge may cross (`render`'s `subdivide`).
     - `repeats`: timed renders after the compiling one (their median is reported).
     - `derivatives`, `derivative_scale`, `lm_step`: whether derivatives are timed, at
       which image scale, and whether one Levenberg–Marquardt step is among them.

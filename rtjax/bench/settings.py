@@ -54,16 +54,15 @@ def label(knob: str, s: Setting) -> str:
 
 def plan(default: Setting, reference: Setting, cfg: Config, secondary: bool) -> list[tuple[str, Setting]]:
     """The table's (knob, setting) rows: the reference, the default, then each knob alone
-    (depths and sub-boxes only when `secondary`: without mirrors or glass every depth
-    renders the same image, and no pixel is subdivided)."""
+    (depths only when `secondary`: without mirrors or glass every depth renders the
+    same image)."""
     rows = [("reference", reference), ("default", default)]
     rows += [("dtype", dataclasses.replace(default, dtype=d)) for d in cfg.dtypes]
     if secondary:
         rows += [("depth", dataclasses.replace(default, depth=d)) for d in cfg.depths]
     rows += [("spp", dataclasses.replace(default, spp=k)) for k in cfg.spps]
     rows += [("edges", dataclasses.replace(default, edges=w)) for w in cfg.edges]
-    if secondary:
-        rows += [("subdivide", dataclasses.replace(default, edges=1.0, subdivide=n)) for n in cfg.subdivides]
+    rows += [("subdivide", dataclasses.replace(default, edges=1.0, subdivide=n)) for n in cfg.subdivides]
     rows += [("scale", dataclasses.replace(default, scale=f)) for f in cfg.scales]
     return rows
 
