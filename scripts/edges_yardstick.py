@@ -1,5 +1,5 @@
-"""The yardstick of the silhouette mode's derivatives inside mirrors and glass (issue 21):
-central finite differences of the independent float64 reference renderer
+"""The yardstick of the silhouette mode's derivatives (issue 21): central finite
+differences of the independent float64 reference renderer
 (`rtjax.reference`), box-filtered from k × k samples per pixel, for the scenes and
 parameters of `tests/edge_scenes.py`, written to `tests/data/edges_yardstick.npz`
 (read by `tests/test_edges_chain.py`).
@@ -8,7 +8,7 @@ For each scene: the supersampled image (`image`, 16 × 16), and the finite-diffe
 derivative images (P, H, W, 3) at 16 × 16 samples with steps of 0.3 and 0.6 px of image
 motion (`fd16_0.3`, `fd16_0.6`), at 24 × 24 with 0.3 px (`fd24_0.3`, confirming them),
 and the fine ones (`edge_scenes.FINE`): 64 × 64 with 0.04 px (`fd64_0.04`) and 48 × 48
-with 0.05 px (`fd48_0.05`, confirming it), stored as float32. About 35 minutes on one
+with 0.05 px (`fd48_0.05`, confirming it), stored as float32. About 45 minutes on one
 core; `--only KEY,...` recomputes some of them, the others kept.
 
     python scripts/edges_yardstick.py [--only KEY,...] [--out PATH] [SCENE ...]

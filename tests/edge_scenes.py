@@ -1,5 +1,5 @@
-"""Scenes with mirrors and glass for the silhouette mode's derivatives (issue 21), and
-what to vary in them: shared by `scripts/edges_yardstick.py`, which computes their
+"""Scenes for the silhouette mode's derivatives (issue 21), with mirrors and glass and one
+without, and what to vary in them: shared by `scripts/edges_yardstick.py`, which computes their
 supersampled finite differences with the independent reference renderer
 (`rtjax.reference`) into `tests/data/edges_yardstick.npz`, and `tests/test_edges_chain.py`,
 which checks `render(..., edges=1)`'s derivatives against them.
@@ -60,6 +60,17 @@ DECKS = {
         + "plig 0.5 -0.4 1 180 170 160\nelig 0.15\nback 30 40 90\n"
         + "eyep 0 -100 40\nrefp 0 0 -8\nvang 20 20\nsize 32\nrend x.ras\n",
         6,
+    ),
+    # no mirror, no glass: three opaque spheres clear of the floor, 40 pixels, the camera
+    # off to the side; where an outline lies over its own shadow a pixel holds two edges
+    "opaque": (
+        FLOOR
+        + "sphe -10 -6 -10 5\nopaq 0.9 0.9 0.2 0.3 8\n"
+        + "sphe 6 6 -6 9\nopaq 0.3 0.5 0.9 0.4 20\n"
+        + "sphe 8 -16 -11 4\nopaq 0.8 0.3 0.3 0.2 10\n"
+        + "plig 0.3 -0.8 1 200 190 180\nelig 0.1\nback 20 30 70\n"
+        + "eyep -15 -90 25\nrefp 0 0 -8\nvang 28 28\nsize 40\nrend x.ras\n",
+        0,
     ),
 }
 
