@@ -70,8 +70,8 @@ def varied(name: str, s: rtjax.Scene):
 
 def derivative_images(name: str, edges: float = 1.0, spp: int = 1, subdivide: int | None = 0):
     """The mode's image (H, W, 3) and its derivative images (P, H, W, 3) by jax.jacfwd
-    (`subdivide`: `render(..., subdivide=subdivide)`, halvings of the box in mirrors and
-    glass; None: `render`'s default)."""
+    (`subdivide`: `render(..., subdivide=subdivide)`, halvings of the box in the pixels
+    an edge may cross; None: `render`'s default)."""
     s = scene(name)
     at, n = varied(name, s)
     depth = DECKS[name][1]

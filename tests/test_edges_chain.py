@@ -36,14 +36,19 @@ from rtjax import reference
 pytestmark = pytest.mark.usefixtures("quick_build")
 
 
-#: The scenes checked as `render` does by default at their sizes, with 4 × 4 sub-boxes in
-#: the pixels an edge may cross (`subdivide=None`); the others (crowded) in the one-box mode.
-SUBDIVIDED = {"heldout": None, "tir": None, "overlap": None, "opaque": None}
+#: The scenes checked in the one-box mode (`subdivide=0`); the others as `render` does by
+#: default at their sizes, with 4 × 4 sub-boxes in the pixels an edge may cross.
+ONE_BOX = {"crowded"}
+
+
+def subdivide(name: str) -> int | None:
+    """Scene `name`'s `render(..., subdivide=)`: 0 in `ONE_BOX`, else the default (None)."""
+    return 0 if name in ONE_BOX else None
 
 
 @functools.lru_cache(maxsize=None)
 def mode(name: str):
-    return derivative_images(name, edges=1.0, subdivide=SUBDIVIDED.get(name, 0))
+    return derivative_images(name, edges=1.0, subdivide=subdivide(name))
 
 
 @pytest.mark.parametrize("name", ["crowded"])
@@ -128,7 +133,7 @@ def test_derivatives_are_the_images_own(name):
     derivatives were 7–673 % off their images' own on crowded)."""
     ys = yardsticks(name)
     image, jac = mode(name)
-    fd = own_differences(name, 1e-6, subdivide=SUBDIVIDED.get(name, 0))
+    fd = own_differences(name, 1e-6, subdivide=subdivide(name))
     c = compare(jac, fd, ys["names"])
     assert np.all(c.relative < 1e-5), c.summary()
     for n, a, b in zip(ys["names"], jac, fd):
