@@ -382,6 +382,14 @@ EDGE_CAPACITY_SHARE = 4
 EDGE_CAPACITY_MIN = 4096
 
 
+#: Where pass 2 has room for every ray (`edge_capacity`'s minimum: small images, and
+#: the sub-boxes' rounds), it traces the sides of its edges in this many tiles, those
+#: past the last edge skipped at run time (`tiled`), so that its cost follows the edges
+#: found; elsewhere its rays are pixels chosen near edges, mostly edges themselves, and
+#: one chain (whose tiers pack the rays still alive) is the cheaper.
+SIDE_TILES = 8
+
+
 def edge_capacity(n: int) -> int:
     """How many of `n` pixels pass 2 of the silhouette mode traces; beyond, the surplus
     keeps its colour through the centre."""
@@ -399,7 +407,10 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
     sphere met on one side, removed on the other): through the centroids of their parts
     of the pixel's box in box mode, whose blend (`EdgeSamples.blended`) is the pixel's
     box-filtered colour; just across the edge where it passes nearest to the centre in
-    sided mode. Its cost follows the edges' length, not the image's area.
+    sided mode. Its cost follows the edges' length, not the image's area. Where pass 2
+    has room for every ray (`capacity` left to `edge_capacity` on at most its minimum of
+    rays: small images, sub-boxes), the sides run in `SIDE_TILES` tiles, those past the
+    last edge skipped.
 
     Box mode, `subdivide` (static, halvings of the box; 0: none): the pixels whose box an
     edge may cross (`subdivided_pixels`) are traced again as k × k sub-boxes, k =
@@ -409,10 +420,12 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
     misplaces their derivatives.
     """
     n = o.shape[1]
+    roomy = capacity is None and edge_capacity(n) == n  # room for every ray: pass 2 mostly empty
     capacity = edge_capacity(n) if capacity is None else min(n, capacity)
+    tiles = SIDE_TILES if roomy else 1
     if subdivide and mode == BOX:
-        return _subdivided(s, p, (o, d, diff), depth, width, capacity, subdivide)
-    return _edge_pass(s, p, (o, d, diff), depth, width, mode, capacity).samples
+        return _subdivided(s, p, (o, d, diff), depth, width, capacity, tiles, subdivide)
+    return _edge_pass(s, p, (o, d, diff), depth, width, mode, capacity, tiles).samples
 
 
 class EdgePass(NamedTuple):
@@ -422,11 +435,12 @@ class EdgePass(NamedTuple):
     subdivided: "Bool[Array, ' p'] | None"  # box mode with `subdivided`: `subdivided_pixels`
 
 
-def _edge_pass(s: Structure, p: Params, primary, depth: int, width, mode: Mode, capacity: int, live=None,
-               subdivided: bool = False) -> EdgePass:
-    """Passes 1 and 2 of `trace_edges` over the rays `primary` (o, d, differentials);
-    `live` (traced): only the first `live` of them are wanted (the rest start ended);
-    `subdivided` (static, box mode): which pixels want sub-boxes too."""
+def _edge_pass(s: Structure, p: Params, primary, depth: int, width, mode: Mode, capacity: int, tiles: int,
+               live=None, subdivided: bool = False) -> EdgePass:
+    """Passes 1 and 2 of `trace_edges` over the rays `primary` (o, d, differentials),
+    pass 2's sides in `tiles` tiles (`SIDE_TILES`); `live` (traced): only the first
+    `live` rays are wanted (the rest start ended); `subdivided` (static, box mode):
+    which pixels want sub-boxes too."""
     o, d, diff = primary
     n = o.shape[1]
     m = prepare(s, p)
@@ -440,8 +454,8 @@ def _edge_pass(s: Structure, p: Params, primary, depth: int, width, mode: Mode, 
     b = packed.gather(best)
     r0 = b.rays
 
-    def two(a, b=None):
-        return jnp.concatenate([a, a if b is None else b], axis=-1)
+    def two(a, b=None):  # each packed edge's two sides next to one another: the valid ones first
+        return jnp.stack([a, a if b is None else b], axis=-1).reshape(a.shape[:-1] + (2 * a.shape[-1],))
 
     none = jnp.full(packed.index.shape, -1, jnp.int32)
     if mode == BOX:  # both sides traced from the eye, the edge's segment toggled
@@ -459,8 +473,9 @@ def _edge_pass(s: Structure, p: Params, primary, depth: int, width, mode: Mode, 
                      two(jnp.where(packed.valid, r0.weight, 0)), two(r0.colour), two(r0.level),
                      diff=edges.Differentials(*(two(a) for a in r0.diff)))
         toggles = spheres.Toggles(two(none, side.edge), two(side.edge, none))
-    out, _ = _chain(s, p, m, start, depth, mode, width, toggles)
-    inside, outside = jnp.split(jnp.clip(out.colour, 0, 255), 2, axis=-1)
+    colour = tiled(lambda r, t: _chain(s, p, m, r, depth, mode, width, t)[0].colour, -(-2 * capacity // tiles),
+                   start, toggles, count=2 * packed.count, checkpointed=False)
+    inside, outside = jnp.moveaxis(jnp.clip(colour, 0, 255).reshape(3, capacity, 2), -1, 0)
     blended = packed.scatter(centre, spread(side.alpha) * inside + spread(1 - side.alpha) * outside)
     if mode == SIDED:
         flipped, shadow_x = jnp.clip(rays.colour + rays.flip.delta, 0, 255), rays.flip.x
@@ -494,7 +509,8 @@ def sub_box_offsets(halvings: int) -> tuple[tuple[float, float], ...]:
     return tuple((sx, sy) for sy in steps for sx in steps)
 
 
-def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: int, halvings: int) -> edges.EdgeSamples:
+def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: int, tiles: int,
+                halvings: int) -> edges.EdgeSamples:
     """`trace_edges` in box mode with sub-boxes: rounds of one compiled pass
     (`_edge_pass`, a `lax.scan`) over the same number of rays. Round 0 traces the
     pixels and picks those to subdivide (up to `capacity`); each later round traces the
@@ -529,7 +545,7 @@ def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: i
     def one(r, chosen):
         sub, live = sub_box_rays(chosen, jnp.maximum(r - 1, 0))
         rays = jax.tree_util.tree_map(lambda a, b: jnp.where(r == 0, pad_last(a, size), b), primary, sub)
-        return _edge_pass(s, p, rays, depth, width, BOX, capacity, jnp.where(r == 0, n, live), subdivided=True)
+        return _edge_pass(s, p, rays, depth, width, BOX, capacity, tiles, jnp.where(r == 0, n, live), subdivided=True)
 
     def body(chosen, r):
         out = checkpointed_or_zeros((r == 0) | (chosen.count > (r - 1) * group), one, r, chosen, prevent_cse=False)
@@ -544,8 +560,8 @@ def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: i
     return pixels._replace(blended=chosen.scatter(pixels.blended, boxes))
 
 
-def checkpointed_or_zeros(run, fn, *args, prevent_cse: bool = True):
-    """`fn(*args)` when `run` (traced), checkpointed (reverse mode recomputes it rather
+def checkpointed_or_zeros(run, fn, *args, prevent_cse: bool = True, checkpointed: bool = True):
+    """`fn(*args)` when `run` (traced), `checkpointed` (reverse mode recomputes it rather
     than storing its intermediates), else zeros shaped as its outputs, chosen at run time
     (`lax.cond`): a skipped part of the work costs nothing. fn is traced once, for both
     its program and its outputs' shapes (`jax.eval_shape` would trace it a second time)."""
@@ -558,7 +574,7 @@ def checkpointed_or_zeros(run, fn, *args, prevent_cse: bool = True):
     def zeros(*a):
         return jax.tree_util.tree_map(lambda v: jnp.zeros(v.shape, v.dtype), shapes)
 
-    return jax.lax.cond(run, jax.checkpoint(traced, prevent_cse=prevent_cse), zeros, *args)
+    return jax.lax.cond(run, jax.checkpoint(traced, prevent_cse=prevent_cse) if checkpointed else traced, zeros, *args)
 
 
 def pad_last(a, size: int):
@@ -567,14 +583,15 @@ def pad_last(a, size: int):
     return jnp.pad(a, [(0, 0)] * (a.ndim - 1) + [(0, size - a.shape[-1])], mode="edge")
 
 
-def tiled(fn, tile: int, *arrays, count=None):
+def tiled(fn, tile: int, *arrays, count=None, checkpointed: bool = True):
     """fn(*arrays) → a pytree of (..., P) arrays, run over tiles of `tile` rays one after
     another (`lax.map`) when P > tile: bounds memory on large images (the image does not
     depend on it). `count` (traced): only the first `count` rays are wanted; tiles
     wholly past them are skipped at run time (their outputs are zeros), and the others
-    are checkpointed (reverse mode recomputes a tile instead of storing its
-    intermediates: stored per tile they cost more than the recomputation)."""
-    n = arrays[0].shape[-1]
+    are `checkpointed` (reverse mode recomputes a tile instead of storing its
+    intermediates: stored per tile they cost more than the recomputation), unless fn
+    checkpoints its own parts (the chain's segments)."""
+    n = jax.tree_util.tree_leaves(arrays)[0].shape[-1]
     if n <= tile:
         return fn(*arrays)
     m = -(-n // tile)
@@ -591,7 +608,7 @@ def tiled(fn, tile: int, *arrays, count=None):
     else:
         def one(ia):
             i, a = ia
-            return checkpointed_or_zeros(i * tile < count, fn, *a)
+            return checkpointed_or_zeros(i * tile < count, fn, *a, checkpointed=checkpointed)
 
         out = jax.lax.map(one, (jnp.arange(m), parts))
     return jax.tree_util.tree_map(join, out)
