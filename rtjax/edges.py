@@ -319,7 +319,7 @@ class Best(NamedTuple):
     on_hit: Bool[Array, " p"]  # the ray met that sphere (else it passed beside it)
     rays: object  # the chain's rays at that segment (`trace.Rays`, with their differentials), before it
     partner: Int[Array, " p"]  # an intersection curve: the sphere H the edge's sphere cuts into (else −1)
-    shadowed: "Bool[Array, ' p'] | None" = None  # watched `lights`: a shadow edge within reach past a mirror or glass
+    shadowed: "Bool[Array, ' p'] | None" = None  # watched `lights`: a shadow edge within reach of a hit
 
 
 class EdgeWatch:
@@ -328,8 +328,8 @@ class EdgeWatch:
     misses it and passes closest to it in front of whatever it meets. `curves`: also
     the intersection curves of spheres cutting into the one a ray meets
     (`curves.nearest_curve`), where they are nearer. `shadows`: also whether a shadow
-    edge lies within reach of a hit past the first segment (seen in a mirror or through
-    glass; `Best.shadowed`), as the segment's shading found it."""
+    edge lies within reach of a hit of any segment (seen directly, in a mirror or
+    through glass; `Best.shadowed`), as the segment's shading found it."""
 
     def __init__(self, centers, radii, tmin, width: float, curves: bool = False, shadows: bool = False):
         self.centers, self.radii, self.tmin, self.width, self.curves = centers, radii, tmin, width, curves
@@ -386,7 +386,7 @@ class EdgeWatch:
                                         best._replace(shadowed=None))
         if not self.shadows:
             return chosen
-        past = near_shadow & hit.found & (rays.weight > 0) & (rays.level > 0)  # seen in a mirror or through glass
+        past = near_shadow & hit.found & (rays.weight > 0)
         return chosen._replace(shadowed=best.shadowed | past)
 
 

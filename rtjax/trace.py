@@ -493,10 +493,10 @@ def subdivided_pixels(best: edges.Best, width):
     """Which pixels `trace_edges` subdivides into sub-boxes: those whose box (`width` sample
     steps) the nearest silhouette or intersection curve may cross (within
     `edges.CROSSING` boxes), seen directly, in a mirror or through glass, and those with
-    a shadow edge that may cross it past a mirror or glass hit (`Best.shadowed`). Where
-    one edge crosses a box, others often lie near it (an outline and its own shadow on
-    the floor, a reflection's edges near a mirror's rim), and one straight edge per
-    pixel misplaces their derivatives."""
+    a shadow edge that may cross it at any hit (`Best.shadowed`). Where one edge crosses
+    a box, others often lie near it (an outline and its own shadow on the floor, two
+    shadows, a reflection's edges near a mirror's rim), and one straight edge per pixel
+    misplaces their derivatives."""
     crossed = (best.edge >= 0) & (best.score < edges.CROSSING * width)
     return crossed | best.shadowed
 
