@@ -386,8 +386,8 @@ class EdgeWatch:
                                         best._replace(shadowed=None))
         if not self.shadows:
             return chosen
-        past = near_shadow & hit.found & (rays.weight > 0)
-        return chosen._replace(shadowed=best.shadowed | past)
+        here = near_shadow & hit.found & (rays.weight > 0)
+        return chosen._replace(shadowed=best.shadowed | here)
 
 
 class Sides(NamedTuple):

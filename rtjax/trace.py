@@ -420,9 +420,9 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
     misplaces their derivatives.
     """
     n = o.shape[1]
-    roomy = capacity is None and edge_capacity(n) == n  # room for every ray: pass 2 mostly empty
-    capacity = edge_capacity(n) if capacity is None else min(n, capacity)
-    tiles = SIDE_TILES if roomy else 1
+    default = edge_capacity(n)
+    tiles = SIDE_TILES if capacity is None and default == n else 1  # room for every ray: pass 2 mostly empty
+    capacity = default if capacity is None else min(n, capacity)
     if subdivide and mode == BOX:
         return _subdivided(s, p, (o, d, diff), depth, width, capacity, tiles, subdivide)
     return _edge_pass(s, p, (o, d, diff), depth, width, mode, capacity, tiles).samples
