@@ -171,7 +171,7 @@ def cosine(a, b) -> float:
 
 # measured mean |image − supersampled| (levels of 255), plain → silhouette-aware (at 32 px
 # `render`'s default, 4 × 4 sub-boxes): single 0.551 → 0.049 (11×), occlusion 0.877 →
-# 0.087 (10×), shadow 1.063 → 0.066 (16×), mirror 0.261 → 0.021 (12×) (one box: 0.074,
+# 0.087 (10×), shadow 1.063 → 0.041 (26×), mirror 0.261 → 0.021 (12×) (one box: 0.074,
 # 0.134, 0.089, 0.037)
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["single", "occlusion", "shadow", "mirror"])
@@ -223,10 +223,10 @@ CASES = {
     ("occlusion", 1, "z"): None,  # 0.9985 (0.9888); Σ 132.4 / 113.8, 0.03
     ("occlusion", 1, "r"): 0.05,  # 0.9992 (0.9916); Σ 751.7 / 783.2 (4.0 %), 0.19
     # shadow: the occluder's silhouette and its shadow's edge on the floor move together
-    ("shadow", 0, "x"): None,  # 0.9979 (0.9971); Σ −11.4 / −38.0, 0.01 (cancels)
-    ("shadow", 0, "y"): 0.05,  # 0.9971 (0.9970); Σ 319.3 / 308.1 (3.6 %), 0.11
-    ("shadow", 0, "z"): None,  # 0.9956 (0.9947); Σ −77.6 / −72.7, 0.02
-    ("shadow", 0, "r"): 0.05,  # 0.9986 (0.9967); Σ −4636.8 / −4593.1 (1.0 %), 0.78
+    ("shadow", 0, "x"): None,  # 0.9984 (0.9975); Σ −3.5 / −38.0, 0.01 (cancels)
+    ("shadow", 0, "y"): 0.05,  # 0.9981 (0.9980); Σ 304.3 / 308.1 (1.2 %), 0.11
+    ("shadow", 0, "z"): None,  # 0.9958 (0.9947); Σ −86.0 / −72.7, 0.02
+    ("shadow", 0, "r"): 0.05,  # 0.9991 (0.9971); Σ −4593.6 / −4593.1 (0.0 %), 0.78
 }
 
 
