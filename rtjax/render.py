@@ -143,7 +143,7 @@ def render(
       pixel centres. The mode is spent where edges are (`image_edges`).
     subdivide: with `edges`, the pixels whose box an edge may cross (a silhouette or an
       intersection curve, seen directly, in a mirror or through glass, or a shadow edge
-      seen past one) are box-filtered as the mean of k × k sub-boxes, k = 2^`subdivide`
+      at any hit) are box-filtered as the mean of k × k sub-boxes, k = 2^`subdivide`
       (1 or True: 2 × 2; 2: 4 × 4; 3: 8 × 8), each with its own nearest edge
       (`trace.trace_edges`): derivatives far closer to the truth where a pixel holds
       several edges and inside mirrors and glass, at several times the mode's cost.

@@ -519,7 +519,7 @@ def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: i
     is skipped at run time past the last. A pixel's blend is the mean of its sub-boxes'.
 
     One pass serves both, so the mode's program holds the chain's passes once, not
-    twice: its compile time is about the one-box mode's, whatever k."""
+    twice: its compile time is near the one-box mode's, whatever k (docs/EDGES.md, "Cost")."""
     n = primary[0].shape[1]
     offsets = sub_box_offsets(halvings)
     kk = len(offsets)
