@@ -237,6 +237,7 @@ def test_scene_translated_by_1e4():
     assert np.mean(np.abs(a32 - b32).max(-1) < 1) > 0.97
 
 
+@pytest.mark.slow
 def test_eye_inside_an_opaque_sphere():
     image = assert_finite_everywhere(deck("sphe 0 -50 0 5\nopaq 1 0.5 0.2 0.5 5\n" + LIT), edges=1.0)
     # inside: only ambient, ke·d·L summed over lights

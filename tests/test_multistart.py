@@ -61,18 +61,34 @@ def background_jobs() -> list[Job]:
 
 
 @pytest.fixture(scope="module")
-def runs(truth):
-    """(one-device result, the 4-device subprocess's result)."""
+def one_device(request, truth):
+    """(the one-device fit's result, its progress rows, the start scene). Where a selected
+    test of this module needs the 4-device subprocess (`runs`), that begins first and
+    runs beside this fit; otherwise (the quick tier) it never starts."""
     (four_job,) = background_jobs()
-    four_job.begin()  # runs while the in-process fit below does, if not done already
+    if any(getattr(item, "module", None) is request.module and BACKGROUND_FOR in item.fixturenames
+           for item in request.session.items):
+        four_job.begin()
+    start = truth.replace(centers=np.asarray(truth.params.centers) + np.asarray(OFFSET))
+    target = np.floor(np.asarray(rtjax.render(truth)) + 0.5)
+    rows = []
     try:
-        start = truth.replace(centers=np.asarray(truth.params.centers) + np.asarray(OFFSET))
-        target = np.floor(np.asarray(rtjax.render(truth)) + 0.5)
-        rows = []
         one = fitting.fit_multistart(start, target, "centers", starts=3, callback=rows.append, **OPTIONS)
+    except BaseException:
+        four_job.stop()
+        raise
+    return one, rows, start
+
+
+@pytest.fixture(scope="module")
+def runs(one_device):
+    """(one-device result, the 4-device subprocess's result, its rows, the start)."""
+    (four_job,) = background_jobs()
+    try:
         four = four_job.result()
     finally:
         four_job.stop()
+    one, rows, start = one_device
     return one, four, rows, start
 
 
@@ -124,10 +140,10 @@ def test_sharded_starts_agree_with_one_device(runs):
         assert four["index"] == one.index
 
 
-def test_cli_fit_starts_reports_how_many_converged(runs, tmp_path, capsys, monkeypatch):
+def test_cli_fit_starts_reports_how_many_converged(one_device, tmp_path, capsys, monkeypatch):
     """`rtjax fit --starts K` passes its options on and reports the count (the fit itself
     is the one above, returned by a stand-in so as not to compile another)."""
-    one, _, _, start = runs
+    one, _, start = one_device
     seen = {}
 
     def stand_in(scene, target, free, **kw):
