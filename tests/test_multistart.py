@@ -82,7 +82,7 @@ def one_device(request, truth):
 
 @pytest.fixture(scope="module")
 def runs(one_device):
-    """(one-device result, the 4-device subprocess's result, its rows, the start)."""
+    """(the one-device result, the 4-device subprocess's result, the one-device rows, the start)."""
     (four_job,) = background_jobs()
     try:
         four = four_job.result()
