@@ -36,20 +36,14 @@ SAMPLES = 16  # rays per pixel side for the first-hit maps
 
 def first_hits(s: rtjax.Scene, row: int, col: int) -> np.ndarray:
     """(SAMPLES, SAMPLES) index of the sphere each of SAMPLES² rays through pixel (row,
-    col) meets first, −1 for none (NumPy, float64, from the renderer's camera)."""
+    col) meets first, −1 for none (the renderer's camera and `spheres.nearest`)."""
     p = s.params
     u = (np.arange(SAMPLES) + 0.5) / SAMPLES
     x, y = np.meshgrid(col + u, row + u)
     o, d = rtjax.camera.rays_through(p.eye, p.refp, p.vang, s.structure.width, s.structure.height,
                                      jnp.asarray(np.stack([x.ravel(), y.ravel()])))
-    o, d = np.asarray(o, np.float64).T, np.asarray(d, np.float64).T
-    oc = o[:, None, :] - np.asarray(p.centers, np.float64)[None]
-    b = np.einsum("pk,pnk->pn", d, oc)
-    disc = b * b - (oc**2).sum(-1) + np.asarray(p.radii, np.float64) ** 2
-    root = np.sqrt(np.maximum(disc, 0))
-    t = np.where(-b - root > 1e-9, -b - root, np.where(-b + root > 1e-9, -b + root, np.inf))
-    t = np.where(disc > 0, t, np.inf)
-    return np.where(np.isfinite(t.min(1)), t.argmin(1), -1).reshape(SAMPLES, SAMPLES)
+    index = rtjax.spheres.nearest(o, d, p.centers, p.radii, jnp.full(SAMPLES**2, -1), 1e-6, False)[1]
+    return np.asarray(index).reshape(SAMPLES, SAMPLES)
 
 
 def main() -> None:
