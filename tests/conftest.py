@@ -182,15 +182,21 @@ def kill_group(proc: subprocess.Popen):
 _JOBS: list[Job] = []
 
 
-def pytest_collection_finish(session):
-    if os.environ.get("PYTEST_XDIST_WORKER"):
-        return  # several workers: each job starts when a test of the worker that runs it needs it
+def background_modules(items) -> list:
+    """The test modules, in order, of which a selected test (among `items`) uses the
+    fixture that waits for their background jobs (`BACKGROUND_FOR`)."""
     modules = []
-    for item in session.items:
+    for item in items:
         module = getattr(item, "module", None)
         if module not in modules and getattr(module, "BACKGROUND_FOR", None) in getattr(item, "fixturenames", ()):
             modules.append(module)
-    for module in modules:
+    return modules
+
+
+def pytest_collection_finish(session):
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        return  # several workers: each job starts when a test of the worker that runs it needs it
+    for module in background_modules(session.items):
         _JOBS.extend(module.background_jobs())
     if _JOBS:
         jobs = list(_JOBS)

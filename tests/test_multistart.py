@@ -23,7 +23,7 @@ import tempfile
 import jax
 import numpy as np
 import pytest
-from conftest import Job, quick_env, truth_deck
+from conftest import Job, background_modules, quick_env, truth_deck
 from test_batch import collect, launch
 
 import fitting
@@ -66,8 +66,7 @@ def one_device(request, truth):
     test of this module needs the 4-device subprocess (`runs`), that begins first and
     runs beside this fit; otherwise (the quick tier) it never starts."""
     (four_job,) = background_jobs()
-    if any(getattr(item, "module", None) is request.module and BACKGROUND_FOR in item.fixturenames
-           for item in request.session.items):
+    if request.module in background_modules(request.session.items):
         four_job.begin()
     start = truth.replace(centers=np.asarray(truth.params.centers) + np.asarray(OFFSET))
     target = np.floor(np.asarray(rtjax.render(truth)) + 0.5)
