@@ -409,7 +409,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="silhouette-aware (antialiased, edge-differentiable) mode with this edge width in pixels (default 0: off)")
     r.add_argument("--subdivide", type=_halvings, nargs="?", const=1, default=None, metavar="N",
                    help="with --edges: trace the pixels an edge may cross as 2^N x 2^N sub-boxes "
-                        f"(N = 1 without a value: 2x2; 2: 4x4; 3: 8x8; 0: none; default: {SMALL_IMAGE_SUBDIVIDE} in images "
+                        "(N = 1 without a value: 2x2; 2: 4x4; 3, 4: 4x4, then 2x2 or 4x4 in the sub-boxes an edge may cross; "
+                        f"0: none; default: {SMALL_IMAGE_SUBDIVIDE} in images "
                         f"of at most {EDGE_CHUNK_MIN} pixels, else 0; see docs/EDGES.md)")
     r.add_argument("--png", action="store_true", help="also write a PNG preview beside each Sun raster file")
     r.add_argument("--assignment-order", action="store_true",

@@ -290,6 +290,18 @@ def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, motion: M
     return Shadow(soft, soft, jnp.full_like(soft, jnp.inf), near)
 
 
+def near_terminator(nl, light, motion: Motion, radius, width):
+    """Whether each hit's terminator for one light (N·L = 0, where shading's max(N·L, 0)
+    and the highlight turn off) may cross its box of `width` sample steps: |N·L| within
+    `CROSSING` boxes of its rate over the footprint (the normal of a sphere of radius r
+    turns by the hit's motion / r). Shading is continuous there but far from linear
+    across the box, and a box traced at one point takes its derivative from that point
+    alone: such boxes are worth sub-boxes (`trace.subdivided_pixels`)."""
+    sg = jax.lax.stop_gradient
+    rate = safe_sqrt(sum(dot(sg(m), light[:, None]) ** 2 for m in motion), tiny(nl.dtype)) / sg(radius)
+    return jnp.abs(sg(nl)) < CROSSING * width * rate
+
+
 def edge_pixels(keys: Int[Array, "h+2r w+2r"], reach: int) -> Bool[Array, "h w"]:
     """Which samples of a lattice have keys (`trace.hit_key`: the spheres each chain
     meets and the shadows on them) not all equal within `reach` samples across and
@@ -309,6 +321,10 @@ def edge_pixels(keys: Int[Array, "h+2r w+2r"], reach: int) -> Bool[Array, "h w"]
 #: A straight edge crosses a square box only within √½ of its side from the centre
 #: (its half-diagonal); farther, the box lies on one side (α is 0 or 1).
 CROSSING = 0.5**0.5
+#: Within this many boxes of the outline of the sphere a ray meets, its shading is far
+#: from linear across a box (the hit's depth, and so its normal and shading, change as
+#: the square root of the distance from the rim): `EdgeWatch`'s `nonlinear` boxes.
+RIM = 1.5
 
 
 class Best(NamedTuple):
@@ -319,7 +335,7 @@ class Best(NamedTuple):
     on_hit: Bool[Array, " p"]  # the ray met that sphere (else it passed beside it)
     rays: object  # the chain's rays at that segment (`trace.Rays`, with their differentials), before it
     partner: Int[Array, " p"]  # an intersection curve: the sphere H the edge's sphere cuts into (else −1)
-    shadowed: "Bool[Array, ' p'] | None" = None  # watched `lights`: a shadow edge within reach of a hit
+    nonlinear: "Bool[Array, ' p'] | None" = None  # watched: a shadow edge, terminator or rim near a hit (`EdgeWatch`)
 
 
 class EdgeWatch:
@@ -327,25 +343,27 @@ class EdgeWatch:
     to its ray. Visible: the segment's ray meets that sphere first, from outside; or it
     misses it and passes closest to it in front of whatever it meets. `curves`: also
     the intersection curves of spheres cutting into the one a ray meets
-    (`curves.nearest_curve`), where they are nearer. `shadows`: also whether a shadow
-    edge lies within reach of a hit of any segment (seen directly, in a mirror or
-    through glass; `Best.shadowed`), as the segment's shading found it."""
+    (`curves.nearest_curve`), where they are nearer. `nonlinear`: also whether, at a
+    hit of any segment (seen directly, in a mirror or through glass), a shadow edge or a
+    terminator may cross the box (as the segment's shading found them: `Shade.near`),
+    or the rim of the sphere met lies within `RIM` boxes (`Best.nonlinear`): where the
+    box's colour is far from linear across it, though no silhouette crosses it."""
 
-    def __init__(self, centers, radii, tmin, width: float, curves: bool = False, shadows: bool = False):
+    def __init__(self, centers, radii, tmin, width: float, curves: bool = False, nonlinear: bool = False):
         self.centers, self.radii, self.tmin, self.width, self.curves = centers, radii, tmin, width, curves
-        self.shadows = shadows
+        self.nonlinear = nonlinear
 
     def empty(self, rays) -> Best:
         """No edge found yet (the fold's start)."""
         n = rays.weight.shape
         none = jnp.full(n, -1, jnp.int32)
-        shadowed = jnp.zeros(n, bool) if self.shadows else None
-        return Best(jnp.full(n, jnp.inf, rays.o.dtype), none, jnp.zeros(n, bool), rays, none, shadowed)
+        nonlinear = jnp.zeros(n, bool) if self.nonlinear else None
+        return Best(jnp.full(n, jnp.inf, rays.o.dtype), none, jnp.zeros(n, bool), rays, none, nonlinear)
 
-    def __call__(self, rays, hit: spheres.Hit, best: Best, near_shadow=None) -> Best:
+    def __call__(self, rays, hit: spheres.Hit, best: Best, near=None) -> Best:
         """`best` with this segment's nearest visible silhouette where it is nearer;
-        `near_shadow` (with `shadows`): per hit, whether the shading found a light's shadow
-        edge within `CROSSING` boxes of it (`Shade.near`)."""
+        `near` (with `nonlinear`): per hit, whether the shading found a light's shadow
+        edge or terminator within `CROSSING` boxes of it (`Shade.near`)."""
         n = self.centers.shape[0]
         tab = spheres.table(rays.o, rays.d, self.centers) if hit.table is None else hit.table
         sg = jax.lax.stop_gradient
@@ -382,12 +400,12 @@ class EdgeWatch:
             here = Best(jnp.where(nearer, cscore, score), jnp.where(nearer, cedge, edge), here.on_hit & ~nearer, rays,
                         jnp.where(nearer, hit.index, -1))
         better = checkpoint_name(here.score < best.score, spheres.CHOICE)
-        chosen = jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), here._replace(shadowed=None),
-                                        best._replace(shadowed=None))
-        if not self.shadows:
+        chosen = jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), here._replace(nonlinear=None),
+                                        best._replace(nonlinear=None))
+        if not self.nonlinear:
             return chosen
-        here = near_shadow & hit.found & (rays.weight > 0)
-        return chosen._replace(shadowed=best.shadowed | here)
+        rim = jnp.any(ok & met & (jnp.abs(gap) / reach < RIM * self.width), axis=0)  # a lower bound of |δ|, as above
+        return chosen._replace(nonlinear=best.nonlinear | (near & hit.found & (rays.weight > 0)) | rim)
 
 
 class Sides(NamedTuple):

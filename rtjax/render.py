@@ -13,7 +13,7 @@ from jaxtyping import Array, Float
 
 from .camera import pixel_grid, rays_through, subpixel_offsets
 from .compact import pack
-from .edges import Differentials, EdgeSamples, edge_pixels
+from .edges import RIM, Differentials, EdgeSamples, edge_pixels
 from .errors import RtjaxError
 from .scene import Params, Scene, Structure
 from .spheres import coherent_order
@@ -23,14 +23,15 @@ from .trace import BOX, LEVEL, PLAIN, SIDED, Mode, tiled, trace, trace_edges
 MAX_DEPTH = int(jnp.iinfo(LEVEL).max)
 #: The widest edge box the silhouette-aware mode takes, in pixels.
 MAX_EDGE_WIDTH = 16.0
-#: The most halvings of a box `subdivide` takes (8 × 8 sub-boxes).
-MAX_SUBDIVIDE = 3
+#: The most halvings of a box `subdivide` takes (16 × 16 sub-boxes where edges are).
+MAX_SUBDIVIDE = 4
 #: `subdivide`'s default (None) in the silhouette-aware mode on images of at most
-#: `EDGE_CHUNK_MIN` pixels: 4 × 4 sub-boxes. In small images a pixel often holds
-#: several edges (an outline and its shadow, what mirrors and glass show), and such
-#: images are traced whole, at a cost of kernel launches more than rays (docs/EDGES.md,
-#: "Cost"); larger images keep one box, which meets the mode's cost goal.
-SMALL_IMAGE_SUBDIVIDE = 2
+#: `EDGE_CHUNK_MIN` pixels: 16 × 16 sub-boxes where edges are (4 × 4, then 4 × 4 again
+#: in the sub-boxes an edge may cross: `trace.sub_box_levels`). In small images a pixel
+#: often holds several edges (an outline and its shadow, what mirrors and glass show,
+#: compressed near their rims); larger images keep one box, which meets the mode's cost
+#: goal (docs/EDGES.md, "Knobs" and "Cost").
+SMALL_IMAGE_SUBDIVIDE = 4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -144,11 +145,12 @@ def render(
     subdivide: with `edges`, the pixels whose box an edge may cross (a silhouette or an
       intersection curve, seen directly, in a mirror or through glass, or a shadow edge
       at any hit) are box-filtered as the mean of k × k sub-boxes, k = 2^`subdivide`
-      (1 or True: 2 × 2; 2: 4 × 4; 3: 8 × 8), each with its own nearest edge
-      (`trace.trace_edges`): derivatives far closer to the truth where a pixel holds
-      several edges and inside mirrors and glass, at several times the mode's cost.
-      None (default): 4 × 4 on images of at most 4,096 pixels, else one box
-      (`default_subdivide`; docs/EDGES.md).
+      (1 or True: 2 × 2; 2: 4 × 4; 3 and 4: 4 × 4, then 2 × 2 or 4 × 4 in each
+      sub-box an edge may cross: `trace.sub_box_levels`), each with its own nearest
+      edge (`trace.trace_edges`): derivatives far closer to the truth where a pixel
+      holds several edges and inside mirrors and glass, at several times the mode's
+      cost. None (default): 4 (16 × 16 where edges are) on images of at most 4,096
+      pixels, else one box (`default_subdivide`; docs/EDGES.md).
     tile: rays traced together (default: 2¹⁷ on a CPU, 2²⁰ on an accelerator); the
       image does not depend on it, only speed and memory do.
 
@@ -179,7 +181,7 @@ def render_image(s: Structure, p: Params, options: Options) -> Float[Array, "h w
 
     def sample(offset):
         if options.edges and not traced_whole(s):
-            return image_edges(s, p, offset, step, options, reach=math.ceil(options.edges / options.spp / 2))
+            return image_edges(s, p, offset, step, options, reach=edge_reach(options))
         mode = BOX if options.edges else PLAIN
         xy = pixel_grid(s.width, s.height, offset)
         if not s.culls:
@@ -205,6 +207,15 @@ def traced_whole(s: Structure) -> bool:
     """Whether the silhouette mode traces every pixel of `s`'s image in one chunk (at
     most `EDGE_CHUNK_MIN` pixels) rather than the pixels near edges (`image_edges`)."""
     return s.width * s.height <= EDGE_CHUNK_MIN
+
+
+def edge_reach(options: Options) -> int:
+    """How far from a change of key (`image_edges`) a pixel may lie, in pixels, and still
+    need the silhouette mode: half a box (an edge crossing its box, `edges.CROSSING`),
+    or with sub-boxes `edges.RIM` boxes and one more (a rim near its box,
+    `trace.subdivided_pixels`, whose distance the rule bounds from below)."""
+    box = options.edges / options.spp
+    return math.ceil(box * (RIM + 1)) if options.subdivide else math.ceil(box / 2)
 
 
 def image_edges(s: Structure, p: Params, offset, step, options: Options, reach: int):

@@ -81,7 +81,7 @@ class Shade(NamedTuple):
     colour: Float[Array, "3 p"]
     visibility: tuple[Float[Array, " p"], ...]  # per light: hard, or box-filtered in box mode
     flip: "edges.Flip | None"  # sided mode: the nearest shadow edge over the lights
-    near: "Bool[Array, ' p'] | None"  # box and sided modes: some light's shadow edge may cross the hit's box
+    near: "Bool[Array, ' p'] | None"  # box and sided modes: some light's shadow edge or terminator may cross the hit's box
 
 
 def primary_sky(p: Params, hit: spheres.Hit, primary: Bool[Array, " p"]) -> Float[Array, " p"]:
@@ -125,7 +125,7 @@ def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, mode
         else:
             shadow = edges.soft_shadow(hit, light, p.centers, p.radii, m.tmin, m.shadow_factor, motion, width,
                                        sided=mode == SIDED)
-            vis, near = shadow.here, near | shadow.near
+            vis, near = shadow.here, near | shadow.near | edges.near_terminator(nl, light, motion, lookup(p.radii, idx), width)
         term = local_light(d, ks, beta, p.ke, nl, cos_g, vis, colour, sky)
         if mode == SIDED:
             flip = flip.nearer(edges.Flip(shadow.x, local_light(d, ks, beta, p.ke, nl, cos_g, shadow.there, colour, sky) - term))
@@ -414,10 +414,10 @@ def trace_edges(s: Structure, p: Params, o, d, diff: edges.Differentials, depth:
 
     Box mode, `subdivide` (static, halvings of the box; 0: none): the pixels whose box an
     edge may cross (`subdivided_pixels`) are traced again as k × k sub-boxes, k =
-    2^`subdivide` (`_subdivided`), each with its own nearest edge and sides; their blend
-    is their mean. A pixel may hold several edges, and through a curved mirror or glass
-    the world behind is far from linear across it: one straight edge per pixel
-    misplaces their derivatives.
+    2^`subdivide` (`_subdivided`; beyond 4 × 4 in two levels, `sub_box_levels`), each
+    with its own nearest edge and sides; their blend is their mean. A pixel may hold
+    several edges, and through a curved mirror or glass the world behind is far from
+    linear across it: one straight edge per pixel misplaces their derivatives.
     """
     n = o.shape[1]
     default = edge_capacity(n)
@@ -444,7 +444,7 @@ def _edge_pass(s: Structure, p: Params, primary, depth: int, width, mode: Mode, 
     o, d, diff = primary
     n = o.shape[1]
     m = prepare(s, p)
-    watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width, curves=mode == BOX, shadows=subdivided)
+    watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width, curves=mode == BOX, nonlinear=subdivided)
     first = start_rays(o, d, mode, diff)
     if live is not None:
         first = first._replace(weight=jnp.where(jnp.arange(n) < live, first.weight, 0))
@@ -493,12 +493,14 @@ def subdivided_pixels(best: edges.Best, width):
     """Which pixels `trace_edges` subdivides into sub-boxes: those whose box (`width` sample
     steps) the nearest silhouette or intersection curve may cross (within
     `edges.CROSSING` boxes), seen directly, in a mirror or through glass, and those with
-    a shadow edge that may cross it at any hit (`Best.shadowed`). Where one edge crosses
-    a box, others often lie near it (an outline and its own shadow on the floor, two
-    shadows, a reflection's edges near a mirror's rim), and one straight edge per pixel
-    misplaces their derivatives."""
+    a shadow edge or a terminator that may cross it, or a rim near it, at any hit
+    (`Best.nonlinear`). Where one edge crosses a box, others often lie near it (an
+    outline and its own shadow on the floor, two shadows, a reflection's edges near a
+    mirror's rim), and one straight edge per pixel misplaces their derivatives; across a
+    terminator or near a rim the colour is far from linear, and one point's derivative
+    is not the box's."""
     crossed = (best.edge >= 0) & (best.score < edges.CROSSING * width)
-    return crossed | best.shadowed
+    return crossed | best.nonlinear
 
 
 def sub_box_offsets(halvings: int) -> tuple[tuple[float, float], ...]:
@@ -509,55 +511,112 @@ def sub_box_offsets(halvings: int) -> tuple[tuple[float, float], ...]:
     return tuple((sx, sy) for sy in steps for sx in steps)
 
 
+#: The most halvings of a box in one level of sub-boxes (`sub_box_levels`).
+LEVEL_HALVINGS = 2
+#: A second level of sub-boxes divides at most this share of the first level's
+#: sub-boxes (those an edge may cross; beyond, they keep their first-level colour).
+REFINED_SHARE = 2
+
+
+def sub_box_levels(halvings: int) -> tuple[int, ...]:
+    """The levels of sub-boxes that reach 2^`halvings` × 2^`halvings` boxes in a pixel:
+    the first of at most `LEVEL_HALVINGS` halvings, a second (dividing only the
+    first level's sub-boxes that an edge may cross) of the rest: (2,) for 4 × 4, (2, 2)
+    for 16 × 16 where edges are."""
+    first = min(halvings, LEVEL_HALVINGS)
+    return (first,) if first == halvings else (first, halvings - first)
+
+
 def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: int, tiles: int,
                 halvings: int) -> edges.EdgeSamples:
     """`trace_edges` in box mode with sub-boxes: rounds of one compiled pass
     (`_edge_pass`, a `lax.scan`) over the same number of rays. Round 0 traces the
     pixels and picks those to subdivide (up to `capacity`); each later round traces the
-    k × k sub-boxes (k = 2^`halvings`) of a k²-th of `capacity` of them (the primary
-    rays moved to the sub-boxes' centres by their differentials, which shrink by k), and
-    is skipped at run time past the last. A pixel's blend is the mean of its sub-boxes'.
+    sub-boxes of some of them (the primary rays moved to the sub-boxes' centres by their
+    differentials, which shrink with the boxes), and is skipped at run time past the
+    last. The levels of `sub_box_levels`: the first divides the chosen pixels into
+    k × k sub-boxes, each with its own nearest edge and sides, and picks those an edge
+    may cross (`subdivided_pixels` of the sub-boxes); a second divides those again.
+    A box's blend is the mean of its sub-boxes'.
 
-    One pass serves both, so the mode's program holds the chain's passes once, not
-    twice: its compile time is near the one-box mode's, whatever k (docs/EDGES.md, "Cost")."""
+    One pass serves all rounds, so the mode's program holds the chain's passes once:
+    its compile time is near the one-box mode's, whatever the sub-boxes (docs/EDGES.md,
+    "Cost")."""
     n = primary[0].shape[1]
-    offsets = sub_box_offsets(halvings)
-    kk = len(offsets)
-    group = max(1, capacity // kk)  # pixels per sub-box round: their k² sub-boxes fill at most `capacity`
-    rounds = -(-capacity // group)
-    size = max(n, kk * group)  # rays per round (more than n only for images of under k² pixels)
+    levels = sub_box_levels(halvings)
+    offsets = [jnp.asarray(sub_box_offsets(h), primary[0].dtype) for h in levels]  # (kk, 2) per level
+    kks = [2 ** (2 * h) for h in levels]
+    # boxes divided per level: the pixels picked, then a share of the first level's sub-boxes
+    groups = [max(1, capacity // kk) for kk in kks]  # boxes divided per round: their sub-boxes fill ≤ capacity
+    caps = [capacity] + [capacity * kks[0] // REFINED_SHARE] * (len(levels) - 1)
+    rounds = [-(-cap // g) for cap, g in zip(caps, groups)]
+    size = max(n, *(kk * g for kk, g in zip(kks, groups)))  # rays per round (> n only for images of under k² pixels)
+    first_boxes = rounds[0] * groups[0] * kks[0]  # the first level's sub-boxes, round after round
+    starts = [1 + sum(rounds[:i]) for i in range(len(levels))]  # each level's first round
 
-    def sub_box_rays(chosen, r):
-        """The sub-boxes of chosen pixels r·group … (r + 1)·group − 1, as `size` rays, and
-        how many of them are wanted."""
-        index = jnp.pad(chosen.index, (0, rounds * group - capacity))
-        po, pd, pdf = jax.tree_util.tree_map(lambda a: a[..., jax.lax.dynamic_slice(index, (r * group,), (group,))],
-                                             primary)
+    def where_in_pixel(chosen, level: int, q):
+        """The sub-boxes of level `level`'s round q (of the boxes chosen[level] picked), as
+        `size` rays: their pixels, their centres' offsets from the pixels' centres in
+        pixel boxes (2, size), how much smaller than a pixel they are, and how many of
+        them are wanted."""
+        g, kk = groups[level], kks[level]
+        box = jnp.pad(chosen[level].index, (0, rounds[level] * g - caps[level]))[q * g + jnp.arange(g)]
+        if level == 0:
+            pixel, centre, scale = box, jnp.zeros((2, g), offsets[0].dtype), 1.0
+        else:  # a first-level sub-box: its pixel, and its centre
+            pixel = jnp.pad(chosen[0].index, (0, rounds[0] * groups[0] - caps[0]))[box // kks[0]]
+            centre, scale = offsets[0][box % kks[0]].T, 2.0 ** -levels[0]
+        moved = jnp.repeat(centre, kk, axis=-1) + jnp.tile(offsets[level].T * scale, (1, g))
+        return (pad_last(jnp.repeat(pixel, kk), size), pad_last(moved, size),
+                jnp.asarray(scale * 2.0 ** -levels[level], offsets[0].dtype), kk * jnp.clip(chosen[level].count - q * g, 0, g))
 
-        def each(a):  # k² × (..., K) → (..., size): a pixel's sub-boxes next to one another
-            return pad_last(jnp.stack(a, axis=-1).reshape(a[0].shape[:-1] + (kk * group,)), size)
-
-        moved = [edges.moved_rays(po, pd, pdf, sx * width, sy * width) for sx, sy in offsets]
-        rays = (each([mv[0] for mv in moved]), each([mv[1] for mv in moved]),
-                edges.Differentials(*(each([a / 2**halvings] * kk) for a in pdf)))
-        return rays, kk * jnp.clip(chosen.count - r * group, 0, group)
+    def level_round(r):
+        """Which level round r traces (the last one that has begun), and its round within it."""
+        level = sum((r >= start).astype(jnp.int32) for start in starts[1:])
+        return level, r - jnp.asarray(starts)[level]
 
     def one(r, chosen):
-        sub, live = sub_box_rays(chosen, jnp.maximum(r - 1, 0))
+        level, q = level_round(jnp.maximum(r, 1))
+        pixel, moved, step, live = where_in_pixel(chosen, 0, jnp.clip(q, 0, rounds[0] - 1))
+        for i in range(1, len(levels)):
+            pixel, moved, step, live = (jnp.where(level == i, a, b) for a, b in zip(
+                where_in_pixel(chosen, i, jnp.clip(q, 0, rounds[i] - 1)), (pixel, moved, step, live)))
+        po, pd, pdf = jax.tree_util.tree_map(lambda a: a[..., pixel], primary)
+        o, d = edges.moved_rays(po, pd, pdf, spread(moved[0] * width), spread(moved[1] * width))
+        sub = (o, d, edges.Differentials(*(a * step for a in pdf)))
         rays = jax.tree_util.tree_map(lambda a, b: jnp.where(r == 0, pad_last(a, size), b), primary, sub)
         return _edge_pass(s, p, rays, depth, width, BOX, capacity, tiles, jnp.where(r == 0, n, live), subdivided=True)
 
-    def body(chosen, r):
-        out = checkpointed_or_zeros((r == 0) | (chosen.count > (r - 1) * group), one, r, chosen, prevent_cse=False)
-        picked = pack(out.subdivided, capacity)
-        chosen = jax.tree_util.tree_map(lambda a, b: jnp.where(r == 0, a, b), picked, chosen)
-        return chosen, out.samples
+    def body(carry, r):
+        chosen, picked = carry
+        level, q = level_round(jnp.maximum(r, 1))
+        wanted = jnp.asarray([c.count for c in chosen]) > q * jnp.asarray(groups)
+        out = checkpointed_or_zeros((r == 0) | wanted[level], one, r, chosen, prevent_cse=False)
+        if len(levels) > 1:  # the first level's sub-boxes an edge may cross, round after round
+            g = groups[0] * kks[0]
+            mine = out.subdivided[:g] & (jnp.arange(g) < kks[0] * jnp.clip(chosen[0].count - q * groups[0], 0, groups[0]))
+            here = jax.lax.dynamic_update_slice(picked, mine, (jnp.clip(q, 0, rounds[0] - 1) * g,))
+            picked = jnp.where((r > 0) & (level == 0), here, picked)
+            chosen = (chosen[0], jax.lax.cond(r == starts[1] - 1, lambda: pack(picked, caps[1]), lambda: chosen[1]))
+        chosen = (jax.lax.cond(r == 0, lambda: pack(out.subdivided[:n], capacity), lambda: chosen[0]),) + chosen[1:]
+        return (chosen, picked), out.samples
 
-    chosen, samples = jax.lax.scan(body, pack(jnp.zeros(size, bool), capacity), jnp.arange(1 + rounds))
+    empty = tuple(pack(jnp.zeros(m, bool), cap) for m, cap in zip([n, first_boxes], caps))
+    picked = jnp.zeros(first_boxes if len(levels) > 1 else 0, bool)  # the first level's sub-boxes to divide again
+    (chosen, _), samples = jax.lax.scan(body, (empty, picked), jnp.arange(1 + sum(rounds)))
     pixels = jax.tree_util.tree_map(lambda a: a[0, ..., :n], samples)
-    boxes = samples.blended[1:, :, :kk * group].reshape(rounds, 3, group, kk).mean(axis=-1)
-    boxes = jnp.moveaxis(boxes, 0, 1).reshape(3, rounds * group)[:, :capacity]
-    return pixels._replace(blended=chosen.scatter(pixels.blended, boxes))
+
+    def boxes(level):  # (3, rounds·groups·kk) level `level`'s sub-boxes' colours, round after round
+        lo, g = starts[level], groups[level] * kks[level]
+        return jnp.moveaxis(samples.blended[lo:lo + rounds[level], :, :g], 0, 1).reshape(3, rounds[level] * g)
+
+    def means(level, colours):  # (3, caps[level]) each divided box's colour: its sub-boxes' mean
+        return colours.reshape(3, rounds[level] * groups[level], kks[level]).mean(axis=-1)[:, :caps[level]]
+
+    first = boxes(0)
+    if len(levels) > 1:
+        first = chosen[1].scatter(first, means(1, boxes(1)))
+    return pixels._replace(blended=chosen[0].scatter(pixels.blended, means(0, first)))
 
 
 def checkpointed_or_zeros(run, fn, *args, prevent_cse: bool = True, checkpointed: bool = True):

@@ -231,7 +231,7 @@ def test_outdir_that_is_a_file(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("argv", [["--spp", "0"], ["--depth", "-1"], ["--dtype", "float16"], ["--edges", "99"], ["--bogus"],
-                                  ["--edges", "1", "--subdivide", "4"]])
+                                  ["--edges", "1", "--subdivide", "5"]])
 def test_bad_options_are_one_line(tmp_path, capsys, argv):
     deck = write_deck(tmp_path, SMALL + "rend a.ras\n")
     with pytest.raises(SystemExit) as info:

@@ -170,9 +170,9 @@ def cosine(a, b) -> float:
 
 
 # measured mean |image − supersampled| (levels of 255), plain → silhouette-aware (at 32 px
-# `render`'s default, 4 × 4 sub-boxes): single 0.551 → 0.049 (11×), occlusion 0.877 →
-# 0.087 (10×), shadow 1.063 → 0.041 (26×), mirror 0.261 → 0.021 (12×) (one box: 0.074,
-# 0.134, 0.089, 0.037)
+# `render`'s default, 16 × 16 sub-boxes where edges are): single 0.551 → 0.029 (19×),
+# occlusion 0.877 → 0.050 (18×), shadow 1.063 → 0.015 (71×), mirror 0.261 → 0.002
+# (4 × 4 until stop 59: 0.049, 0.087, 0.041, 0.021; one box: 0.074, 0.134, 0.089, 0.037)
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["single", "occlusion", "shadow", "mirror"])
 def test_image_approaches_the_supersampled_one(name):
@@ -202,31 +202,31 @@ def test_supersampled_yardstick_is_the_independent_reference():
 # small difference of large terms).
 
 CASES = {
-    ("single", 0, "x"): None,  # 0.9983 (0.9896); Σ −120.4 / −90.2, |Σ|/Σ|·| = 0.02
-    ("single", 0, "y"): 0.05,  # 0.9986 (0.9978); Σ −99.8 / −102.0 (2.2 %), 0.16
-    ("single", 0, "z"): None,  # 0.9982 (0.9975); Σ −156.4 / −117.6, 0.02
-    # radius: 0.9985 (0.9924); Σ 835.8 / 831.2 (0.6 %); its channels cancel (R +1881, G
-    # +625, B −1634: an orange sphere grows over a blue background, |Σ|/Σ|·| = 0.15), and
-    # with one box the sum was 4.99 % off (per channel 1.0 %, 2.1 %, 0.6 %; over 12
-    # sub-pixel placements median 1.9 %, max 6.2 %): asserted at 5.5 %
+    ("single", 0, "x"): None,  # 0.9991 (0.9908); Σ −83.5 / −90.2, |Σ|/Σ|·| = 0.02
+    ("single", 0, "y"): 0.05,  # 0.9996 (0.9987); Σ −98.7 / −102.0 (3.3 %), 0.16
+    ("single", 0, "z"): None,  # 0.9998 (0.9991); Σ −111.5 / −117.6, 0.02
+    # radius: 0.9995 (0.9936); Σ 825.2 / 831.2 (0.7 %; the fine yardstick's 829.4); its
+    # channels cancel (R +1881, G +625, B −1634: an orange sphere grows over a blue
+    # background, |Σ|/Σ|·| = 0.15), and with one box the sum was 4.99 % off (per channel
+    # 1.0 %, 2.1 %, 0.6 %; over 12 sub-pixel placements median 1.9 %, max 6.2 %)
     ("single", 0, "r"): 0.055,
     # occlusion, the front sphere: its right edge runs along a pixel border over the back
     # sphere's highlight (the coarse yardstick's cosine is low there, see the top), and
     # its outline meets the back sphere's at T-junctions
-    ("occlusion", 0, "x"): 0.05,  # 0.9935 (0.9729); Σ −984.7 / −959.1 (2.7 %), 0.18
-    ("occlusion", 0, "y"): None,  # 0.9969 (0.9944); Σ −117.9 / −125.3 (5.9 %), 0.17 (depth: a small sum)
-    ("occlusion", 0, "z"): None,  # 0.9958 (0.9950); Σ −536.5 / −487.4 (10.1 %), 0.09
-    ("occlusion", 0, "r"): 0.05,  # 0.9938 (0.9774); Σ 598.8 / 619.3 (3.3 %), 0.10
+    ("occlusion", 0, "x"): 0.05,  # 0.9953 (0.9745); Σ −955.1 / −959.1 (0.4 %), 0.18
+    ("occlusion", 0, "y"): None,  # 0.9995 (0.9973); Σ −119.8 / −125.3 (4.4 %), 0.17 (depth: a small sum)
+    ("occlusion", 0, "z"): None,  # 0.9995 (0.9988); Σ −484.0 / −487.4 (0.7 %), 0.09
+    ("occlusion", 0, "r"): 0.05,  # 0.9964 (0.9796); Σ 613.4 / 619.3 (0.9 %), 0.10
     # occlusion, the back sphere: its outline ends at T-junctions behind the front sphere
-    ("occlusion", 1, "x"): 0.05,  # 0.9993 (0.9979); Σ 560.9 / 566.9 (1.1 %), 0.20
-    ("occlusion", 1, "y"): 0.05,  # 0.9991 (0.9990); Σ −122.2 / −127.4 (4.1 %), 0.20
-    ("occlusion", 1, "z"): None,  # 0.9985 (0.9888); Σ 132.4 / 113.8, 0.03
-    ("occlusion", 1, "r"): 0.05,  # 0.9992 (0.9916); Σ 751.7 / 783.2 (4.0 %), 0.19
+    ("occlusion", 1, "x"): 0.05,  # 0.9999 (0.9986); Σ 571.7 / 566.9 (0.8 %), 0.20
+    ("occlusion", 1, "y"): 0.05,  # 0.9997 (0.9997); Σ −127.0 / −127.4 (0.3 %), 0.20
+    ("occlusion", 1, "z"): None,  # 0.9998 (0.9904); Σ 114.6 / 113.8, 0.03
+    ("occlusion", 1, "r"): 0.05,  # 0.9999 (0.9926); Σ 781.1 / 783.2 (0.3 %), 0.19
     # shadow: the occluder's silhouette and its shadow's edge on the floor move together
-    ("shadow", 0, "x"): None,  # 0.9984 (0.9975); Σ −3.5 / −38.0, 0.01 (cancels)
-    ("shadow", 0, "y"): 0.05,  # 0.9981 (0.9980); Σ 304.3 / 308.1 (1.2 %), 0.11
-    ("shadow", 0, "z"): None,  # 0.9958 (0.9947); Σ −86.0 / −72.7, 0.02
-    ("shadow", 0, "r"): 0.05,  # 0.9991 (0.9971); Σ −4593.6 / −4593.1 (0.0 %), 0.78
+    ("shadow", 0, "x"): None,  # 0.9997 (0.9988); Σ −48.4 / −38.0, 0.01 (cancels)
+    ("shadow", 0, "y"): 0.05,  # 0.9996 (0.9995); Σ 299.3 / 308.1 (2.9 %), 0.11
+    ("shadow", 0, "z"): None,  # 0.9989 (0.9980); Σ −97.4 / −72.7, 0.02
+    ("shadow", 0, "r"): 0.05,  # 0.9999 (0.9979); Σ −4598.1 / −4593.1 (0.1 %), 0.78
 }
 
 
@@ -446,6 +446,83 @@ def test_sub_boxes_tile_the_box(halvings):
     cells = (np.stack(np.meshgrid(np.arange(k), np.arange(k), indexing="xy"), -1).reshape(-1, 2) + 0.5) / k - 0.5
     np.testing.assert_array_equal(offsets, cells)
     assert len({tuple(o) for o in offsets}) == k * k
+
+
+def test_sub_box_levels_reach_the_halvings():
+    """Beyond 4 × 4 the sub-boxes come in two levels, the second dividing only the first
+    level's sub-boxes that an edge may cross."""
+    assert [rtjax.trace.sub_box_levels(h) for h in range(5)] == [(0,), (1,), (2,), (2, 1), (2, 2)]
+
+
+@pytest.mark.slow
+def test_two_levels_of_sub_boxes_are_the_mean_of_their_boxes():
+    """`subdivide=4` on pixels the single sphere's outline crosses: each pixel is the mean
+    of its 4 × 4 sub-boxes, each of which, where the outline may cross it (within
+    `edges.CROSSING` of a box from its centre), is the mean of its own 4 × 4; built here
+    from one-box renders of those boxes at their centres (`render_samples`, boxes of ¼
+    and 1/16 px) and the outline's distance from them (`edge_samples`). `subdivide=2` is
+    the mean of the first level alone. (The renderer moves the sub-boxes' rays along the
+    pixel's ray differentials, the samples here go through the camera: rounding and
+    second order apart, the same rays.)"""
+    s = scene("single")
+    image = {h: np.asarray(rtjax.render(s, edges=WIDTH, subdivide=h)) for h in (2, 4)}
+    plain_image = plain("single")
+    rows, cols = np.nonzero(np.abs(image[2] - plain_image).max(axis=-1) > 5)  # pixels an edge crosses
+    pick = np.linspace(0, len(rows) - 1, 12).astype(int)
+    pixels = np.stack([cols[pick] + 0.5, rows[pick] + 0.5], axis=-1)  # (12, 2) centres
+    first = np.array(rtjax.trace.sub_box_offsets(2))  # (16, 2) in pixels
+    centres = (pixels[:, None, :] + first[None]).reshape(-1, 2)  # (12·16, 2)
+    a = np.asarray(rtjax.render_samples(s, centres, step=0.25, edges=WIDTH)).reshape(12, 16, 3)
+    edge = {w: rtjax.edge_samples(s, centres, step=0.25, edges=w) for w in (WIDTH, 2 * WIDTH)}
+    has_edge = {w: np.any(np.asarray(e.inside) != np.asarray(e.outside), axis=-1).reshape(12, 16) for w, e in edge.items()}
+    crossed = has_edge[WIDTH] & (np.abs(np.asarray(edge[WIDTH].x)).reshape(12, 16) < rtjax.edges.CROSSING)
+    # within two boxes of the outline but not crossed: divided again or not (the rim's rule
+    # bounds its distance from below), so the pixel may take either colour of such a box
+    either = has_edge[2 * WIDTH] & ~crossed
+    fine = (centres[:, None, :] + first[None] / 4).reshape(-1, 2)
+    b = np.asarray(rtjax.render_samples(s, fine, step=1 / 16, edges=WIDTH)).reshape(12, 16, 16, 3).mean(axis=2)
+    assert 0 < crossed.sum() < crossed.size
+    np.testing.assert_allclose(image[2][rows[pick], cols[pick]], a.mean(axis=1), atol=0.05)
+    expected = np.where(crossed[..., None], b, a).mean(axis=1)
+    slack = (either[..., None] * np.abs(b - a)).sum(axis=1) / 16
+    assert np.all(np.abs(image[4][rows[pick], cols[pick]] - expected) <= slack + 0.05)
+    assert np.abs(expected - a.mean(axis=1)).max() > 0.1  # the second level changed something
+
+
+@pytest.mark.slow
+def test_boxes_a_terminator_crosses_are_subdivided():
+    """The occlusion scene's back sphere, where its terminator (N·L = 0) crosses pixels
+    that no outline does (found here by 8 × 8 rays a pixel meeting the sphere, N·L
+    changing sign among them): shading is continuous there but far from linear, so such
+    pixels get sub-boxes too: with `subdivide=2` each is the mean of its 4 × 4
+    sub-boxes (one-box renders at their centres), image and radius derivative, where
+    one box takes both from the pixel's centre alone."""
+    s = scene("occlusion")
+    p, w, h, k = s.params, s.structure.width, s.structure.height, 1
+    u = (np.arange(8) + 0.5) / 8
+    x, y = np.meshgrid(np.arange(w)[:, None] + u, np.arange(h)[:, None] + u)  # (h·8, w·8)
+    o, d = rtjax.camera.rays_through(p.eye, p.refp, p.vang, w, h, jnp.asarray(np.stack([x.ravel(), y.ravel()])))
+    t, index, _ = rtjax.spheres.nearest(o, d, p.centers, p.radii, jnp.full(x.size, -1), 1e-6, False)
+    t = np.where(np.isfinite(np.asarray(t)), np.asarray(t), 0)  # rays that meet nothing: any point
+    normal = (np.asarray(o) + t * np.asarray(d) - np.asarray(p.centers[k])[:, None]) / float(p.radii[k])
+    nl = (np.asarray(p.light_dirs[0]) @ normal).reshape(h, 8, w, 8)
+    on = (np.asarray(index) == k).reshape(h, 8, w, 8).all(axis=(1, 3))
+    rows, cols = np.nonzero(on & (nl.max(axis=(1, 3)) > 0) & (nl.min(axis=(1, 3)) < 0))
+    assert len(rows) >= 4
+
+    def grown(v):
+        return s.replace(radii=p.radii.at[k].add(v))
+
+    def pixels(subdivide):
+        return jax.jvp(lambda v: rtjax.render(grown(v), edges=WIDTH, subdivide=subdivide)[rows, cols], (0.0,), (1.0,))
+
+    centres = (np.stack([cols + 0.5, rows + 0.5], -1)[:, None, :] + np.array(rtjax.trace.sub_box_offsets(2))).reshape(-1, 2)
+    boxes = jax.jvp(lambda v: rtjax.render_samples(grown(v), centres, step=0.25, edges=WIDTH), (0.0,), (1.0,))
+    (image, tangent), (one, one_tangent) = pixels(2), pixels(0)
+    mean, mean_tangent = (np.asarray(a).reshape(len(rows), 16, 3).mean(axis=1) for a in boxes)
+    np.testing.assert_allclose(image, mean, atol=0.05)
+    np.testing.assert_allclose(tangent, mean_tangent, atol=0.05)
+    assert np.abs(np.asarray(one) - mean).max() > 1 and np.abs(np.asarray(one_tangent) - mean_tangent).max() > 1
 
 
 @pytest.mark.slow

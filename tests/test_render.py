@@ -237,7 +237,7 @@ def test_bad_render_options():
     for kw in (dict(spp=0), dict(spp=2.5), dict(depth=-1), dict(dtype="int32"), dict(tile=0)):
         with pytest.raises(rtjax.RtjaxError):
             rtjax.render(s, **kw)
-    for kw, message in ((dict(edges=1.0, subdivide=4), r"subdivide \(halvings of the box\) must be a whole number in \[0, 3\], not 4"),
+    for kw, message in ((dict(edges=1.0, subdivide=5), r"subdivide \(halvings of the box\) must be a whole number in \[0, 4\], not 5"),
                         (dict(edges=1.0, subdivide=1.5), "not 1.5"), (dict(edges=1.0, subdivide=-1), "not -1"),
                         (dict(subdivide=2), r"subdivide needs the silhouette-aware mode \(edges > 0\)")):
         for rendered in (rtjax.render, functools.partial(rtjax.render_samples, xy=np.ones((1, 2)))):
@@ -250,8 +250,8 @@ def test_bad_render_options():
 
 
 def test_subdivide_defaults_to_sub_boxes_in_small_images():
-    """`subdivide=None` (the default of `render` and the batched renders) resolves to 4 × 4
-    sub-boxes in the silhouette-aware mode on images of at most 4,096 pixels, where a
+    """`subdivide=None` (the default of `render` and the batched renders) resolves to
+    16 × 16 sub-boxes where edges are (4 halvings: `trace.sub_box_levels`) in the silhouette-aware mode on images of at most 4,096 pixels, where a
     pixel often holds several edges, with mirrors and glass or without; to one box on
     larger images and without the mode; a given value is kept."""
     from rtjax.render import resolve_options
@@ -261,14 +261,14 @@ def test_subdivide_defaults_to_sub_boxes_in_small_images():
 
     mirror = scene_from_text("sphe 0 0 0 10\nmirr\nsphe 0 30 0 5\nopaq 1 1 1 0 1\nplig 0 -1 0 200 100 50\n" + CAMERA)
     opaque = scene_from_text("sphe 0 0 0 10\nopaq 1 1 1 0 1\nplig 0 -1 0 200 100 50\n" + CAMERA)
-    assert halvings(mirror) == 2 == halvings(mirror.resized(64))  # 11 × 11, 64 × 64 pixels
-    assert halvings(mirror, depth=0) == halvings(opaque) == halvings(opaque.resized(64)) == 2
+    assert halvings(mirror) == 4 == halvings(mirror.resized(64))  # 11 × 11, 64 × 64 pixels
+    assert halvings(mirror, depth=0) == halvings(opaque) == halvings(opaque.resized(64)) == 4
     assert halvings(mirror.resized(65)) == halvings(opaque.resized(65)) == 0  # 65 × 65 > 4096
     assert halvings(mirror, edges=0.0) == halvings(opaque, edges=0.0) == 0
     assert halvings(mirror, subdivide=0) == 0 and halvings(mirror, subdivide=True) == 1
     assert halvings(mirror.resized(200), subdivide=3) == 3
     # the default is that value's program: the same options key the same compiled render
-    assert resolve_options(mirror, None, 1, None, 1.0, None, None) == resolve_options(mirror, None, 1, None, 1.0, None, 2)
+    assert resolve_options(mirror, None, 1, None, 1.0, None, None) == resolve_options(mirror, None, 1, None, 1.0, None, 4)
 
 
 def test_scene_changes_keep_the_structure():
