@@ -144,7 +144,8 @@ def render(
       pixel centres. The mode is spent where edges are (`image_edges`).
     subdivide: with `edges`, the pixels whose box an edge may cross (a silhouette or an
       intersection curve, seen directly, in a mirror or through glass, or a shadow edge
-      at any hit) are box-filtered as the mean of k × k sub-boxes, k = 2^`subdivide`
+      or a terminator at any hit), or near the rim of a sphere met, where the colour is
+      far from linear, are box-filtered as the mean of k × k sub-boxes, k = 2^`subdivide`
       (1 or True: 2 × 2; 2: 4 × 4; 3 and 4: 4 × 4, then 2 × 2 or 4 × 4 in each
       sub-box an edge may cross: `trace.sub_box_levels`), each with its own nearest
       edge (`trace.trace_edges`): derivatives far closer to the truth where a pixel
