@@ -575,8 +575,7 @@ def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: i
         level = sum((r >= start).astype(jnp.int32) for start in starts[1:])
         return level, r - jnp.asarray(starts)[level]
 
-    def one(r, chosen):
-        level, q = level_round(jnp.maximum(r, 1))
+    def one(r, level, q, chosen):
         pixel, moved, step, live = where_in_pixel(chosen, 0, jnp.clip(q, 0, rounds[0] - 1))
         for i in range(1, len(levels)):
             pixel, moved, step, live = (jnp.where(level == i, a, b) for a, b in zip(
@@ -591,11 +590,11 @@ def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: i
         chosen, picked = carry
         level, q = level_round(jnp.maximum(r, 1))
         wanted = jnp.asarray([c.count for c in chosen]) > q * jnp.asarray(groups)
-        out = checkpointed_or_zeros((r == 0) | wanted[level], one, r, chosen, prevent_cse=False)
+        out = checkpointed_or_zeros((r == 0) | wanted[level], one, r, level, q, chosen, prevent_cse=False)
+        # rays past a round's `live` start ended: no edge, not subdivided (`_edge_pass`)
         if len(levels) > 1:  # the first level's sub-boxes an edge may cross, round after round
             g = groups[0] * kks[0]
-            mine = out.subdivided[:g] & (jnp.arange(g) < kks[0] * jnp.clip(chosen[0].count - q * groups[0], 0, groups[0]))
-            here = jax.lax.dynamic_update_slice(picked, mine, (jnp.clip(q, 0, rounds[0] - 1) * g,))
+            here = jax.lax.dynamic_update_slice(picked, out.subdivided[:g], (jnp.clip(q, 0, rounds[0] - 1) * g,))
             picked = jnp.where((r > 0) & (level == 0), here, picked)
             chosen = (chosen[0], jax.lax.cond(r == starts[1] - 1, lambda: pack(picked, caps[1]), lambda: chosen[1]))
         chosen = (jax.lax.cond(r == 0, lambda: pack(out.subdivided[:n], capacity), lambda: chosen[0]),) + chosen[1:]
