@@ -448,6 +448,12 @@ def test_sub_boxes_tile_the_box(halvings):
     assert len({tuple(o) for o in offsets}) == k * k
 
 
+def sub_box_centres(centres, box: float = 1.0) -> np.ndarray:
+    """(K·16, 2) the centres of the 4 × 4 sub-boxes of the boxes `box` pixels wide centred
+    at `centres` (K, 2), each box's sub-boxes next to one another, as `render` lays them."""
+    return (centres[:, None, :] + box * np.array(rtjax.trace.sub_box_offsets(2))).reshape(-1, 2)
+
+
 def test_sub_box_levels_reach_the_halvings():
     """Beyond 4 × 4 the sub-boxes come in two levels, the second dividing only the first
     level's sub-boxes that an edge may cross."""
@@ -470,8 +476,7 @@ def test_two_levels_of_sub_boxes_are_the_mean_of_their_boxes():
     rows, cols = np.nonzero(np.abs(image[2] - plain_image).max(axis=-1) > 5)  # pixels an edge crosses
     pick = np.linspace(0, len(rows) - 1, 12).astype(int)
     pixels = np.stack([cols[pick] + 0.5, rows[pick] + 0.5], axis=-1)  # (12, 2) centres
-    first = np.array(rtjax.trace.sub_box_offsets(2))  # (16, 2) in pixels
-    centres = (pixels[:, None, :] + first[None]).reshape(-1, 2)  # (12·16, 2)
+    centres = sub_box_centres(pixels)  # (12·16, 2)
     a = np.asarray(rtjax.render_samples(s, centres, step=0.25, edges=WIDTH)).reshape(12, 16, 3)
     edge = {w: rtjax.edge_samples(s, centres, step=0.25, edges=w) for w in (WIDTH, 2 * WIDTH)}
     has_edge = {w: np.any(np.asarray(e.inside) != np.asarray(e.outside), axis=-1).reshape(12, 16) for w, e in edge.items()}
@@ -479,7 +484,7 @@ def test_two_levels_of_sub_boxes_are_the_mean_of_their_boxes():
     # within two boxes of the outline but not crossed: divided again or not (the rim's rule
     # bounds its distance from below), so the pixel may take either colour of such a box
     either = has_edge[2 * WIDTH] & ~crossed
-    fine = (centres[:, None, :] + first[None] / 4).reshape(-1, 2)
+    fine = sub_box_centres(centres, 0.25)
     b = np.asarray(rtjax.render_samples(s, fine, step=1 / 16, edges=WIDTH)).reshape(12, 16, 16, 3).mean(axis=2)
     assert 0 < crossed.sum() < crossed.size
     np.testing.assert_allclose(image[2][rows[pick], cols[pick]], a.mean(axis=1), atol=0.05)
@@ -516,7 +521,7 @@ def test_boxes_a_terminator_crosses_are_subdivided():
     def pixels(subdivide):
         return jax.jvp(lambda v: rtjax.render(grown(v), edges=WIDTH, subdivide=subdivide)[rows, cols], (0.0,), (1.0,))
 
-    centres = (np.stack([cols + 0.5, rows + 0.5], -1)[:, None, :] + np.array(rtjax.trace.sub_box_offsets(2))).reshape(-1, 2)
+    centres = sub_box_centres(np.stack([cols + 0.5, rows + 0.5], -1))
     boxes = jax.jvp(lambda v: rtjax.render_samples(grown(v), centres, step=0.25, edges=WIDTH), (0.0,), (1.0,))
     (image, tangent), (one, one_tangent) = pixels(2), pixels(0)
     mean, mean_tangent = (np.asarray(a).reshape(len(rows), 16, 3).mean(axis=1) for a in boxes)
