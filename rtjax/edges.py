@@ -302,6 +302,22 @@ def near_terminator(nl, light, motion: Motion, radius, width):
     return jnp.abs(sg(nl)) < CROSSING * width * rate
 
 
+def near_highlight(cos_g, ks, beta, motion: Motion, radius, width):
+    """Whether each hit's specular highlight for one light (ks·max(cos γ, 0)^β, a lobe
+    about 1/√β wide in γ) may be narrower than its box of `width` sample steps shows:
+    over the box γ turns by up to twice the normal's turn (the hit's motion / r), and
+    where that is over `HIGHLIGHT_TURN` lobe widths within `HIGHLIGHT_REACH` of the
+    lobe's peak, shading is smooth but far from linear across the box (a small sphere's
+    highlight, or one a glass ball shrinks, inside a pixel): such boxes are worth
+    sub-boxes (`trace.subdivided_pixels`), as a point's derivative is not the box's."""
+    sg = jax.lax.stop_gradient
+    speed = safe_sqrt(sum(dot(sg(m), sg(m)) for m in motion), tiny(cos_g.dtype))
+    turn = 2 * CROSSING * width * speed / sg(radius)
+    gamma = jnp.arccos(jnp.clip(sg(cos_g), -1, 1))
+    root = jnp.sqrt(sg(beta))
+    return (sg(ks) > 0) & (turn * root > HIGHLIGHT_TURN) & ((gamma - turn) * root < HIGHLIGHT_REACH)
+
+
 def edge_pixels(keys: Int[Array, "h+2r w+2r"], reach: int) -> Bool[Array, "h w"]:
     """Which samples of a lattice have keys (`trace.hit_key`: the spheres each chain
     meets and the shadows on them) not all equal within `reach` samples across and
@@ -321,6 +337,11 @@ def edge_pixels(keys: Int[Array, "h+2r w+2r"], reach: int) -> Bool[Array, "h w"]
 #: A straight edge crosses a square box only within √½ of its side from the centre
 #: (its half-diagonal); farther, the box lies on one side (α is 0 or 1).
 CROSSING = 0.5**0.5
+#: A highlight whose lobe (width 1/√β in γ) turns over its box by more than this many
+#: widths, and whose peak lies within `HIGHLIGHT_REACH` widths of the box (where the lobe
+#: is over e^(−REACH²/2) of its peak), is far from linear across the box (`near_highlight`).
+HIGHLIGHT_TURN = 0.5
+HIGHLIGHT_REACH = 3.0
 #: Within this many boxes of the outline of the sphere a ray meets, its shading is far
 #: from linear across a box (the hit's depth, and so its normal and shading, change as
 #: the square root of the distance from the rim): `EdgeWatch`'s `nonlinear` boxes.
@@ -335,7 +356,7 @@ class Best(NamedTuple):
     on_hit: Bool[Array, " p"]  # the ray met that sphere (else it passed beside it)
     rays: object  # the chain's rays at that segment (`trace.Rays`, with their differentials), before it
     partner: Int[Array, " p"]  # an intersection curve: the sphere H the edge's sphere cuts into (else −1)
-    nonlinear: "Bool[Array, ' p'] | None" = None  # watched: a shadow edge, terminator or rim near a hit (`EdgeWatch`)
+    nonlinear: "Bool[Array, ' p'] | None" = None  # watched: a shadow edge, terminator, narrow highlight or rim near a hit (`EdgeWatch`)
 
 
 class EdgeWatch:
@@ -345,8 +366,8 @@ class EdgeWatch:
     the intersection curves of spheres cutting into the one a ray meets
     (`curves.nearest_curve`), where they are nearer. `nonlinear`: also whether, at a
     hit of any segment (seen directly, in a mirror or through glass), a shadow edge or a
-    terminator may cross the box (as the segment's shading found them: `Shade.near`),
-    or the rim of the sphere met lies within `RIM` boxes (`Best.nonlinear`): where the
+    terminator may cross the box or a highlight is narrow across it (as the segment's
+    shading found them: `Shade.near`), or the rim of the sphere met lies within `RIM` boxes (`Best.nonlinear`): where the
     box's colour is far from linear across it, though no silhouette crosses it."""
 
     def __init__(self, centers, radii, tmin, width: float, curves: bool = False, nonlinear: bool = False):
@@ -363,7 +384,8 @@ class EdgeWatch:
     def __call__(self, rays, hit: spheres.Hit, best: Best, near=None) -> Best:
         """`best` with this segment's nearest visible silhouette where it is nearer;
         `near` (with `nonlinear`): per hit, whether the shading found a light's shadow
-        edge or terminator within `CROSSING` boxes of it (`Shade.near`)."""
+        edge or terminator within `CROSSING` boxes of it or a narrow highlight there
+        (`Shade.near`)."""
         n = self.centers.shape[0]
         tab = spheres.table(rays.o, rays.d, self.centers) if hit.table is None else hit.table
         sg = jax.lax.stop_gradient

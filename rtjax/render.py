@@ -144,14 +144,15 @@ def render(
       pixel centres. The mode is spent where edges are (`image_edges`).
     subdivide: with `edges`, the pixels whose box an edge may cross (a silhouette or an
       intersection curve, seen directly, in a mirror or through glass, or a shadow edge
-      or a terminator at any hit), or near the rim of a sphere met, where the colour is
-      far from linear, are box-filtered as the mean of k × k sub-boxes, k = 2^`subdivide`
-      (1 or True: 2 × 2; 2: 4 × 4; 3 and 4: 4 × 4, then 2 × 2 or 4 × 4 in each
-      sub-box an edge may cross: `trace.sub_box_levels`), each with its own nearest
-      edge (`trace.trace_edges`): derivatives far closer to the truth where a pixel
-      holds several edges and inside mirrors and glass, at several times the mode's
-      cost. None (default): 4 (16 × 16 where edges are) on images of at most 4,096
-      pixels, else one box (`default_subdivide`; docs/EDGES.md).
+      or a terminator at any hit), or with a highlight narrow across the box or the rim
+      of a sphere met near it, where the colour is far from linear, are box-filtered
+      as the mean of k × k sub-boxes, k = 2^`subdivide` (1 or True: 2 × 2; 2: 4 × 4; 3
+      and 4: 4 × 4, then 2 × 2 or 4 × 4 in each sub-box an edge may cross:
+      `trace.sub_box_levels`), each with its own nearest edge (`trace.trace_edges`):
+      derivatives far closer to the truth where a pixel holds several edges and inside
+      mirrors and glass, at several times the mode's cost. None (default): 4 (16 × 16
+      where edges are) on images of at most 4,096 pixels, else one box
+      (`default_subdivide`; docs/EDGES.md).
     tile: rays traced together (default: 2¹⁷ on a CPU, 2²⁰ on an accelerator); the
       image does not depend on it, only speed and memory do.
 

@@ -81,7 +81,7 @@ class Shade(NamedTuple):
     colour: Float[Array, "3 p"]
     visibility: tuple[Float[Array, " p"], ...]  # per light: hard, or box-filtered in box mode
     flip: "edges.Flip | None"  # sided mode: the nearest shadow edge over the lights
-    near: "Bool[Array, ' p'] | None"  # box and sided modes: some light's shadow edge or terminator may cross the hit's box
+    near: "Bool[Array, ' p'] | None"  # box and sided modes: some light's shadow edge or terminator may cross the hit's box, or its highlight is narrow there
 
 
 def primary_sky(p: Params, hit: spheres.Hit, primary: Bool[Array, " p"]) -> Float[Array, " p"]:
@@ -125,7 +125,9 @@ def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, mode
         else:
             shadow = edges.soft_shadow(hit, light, p.centers, p.radii, m.tmin, m.shadow_factor, motion, width,
                                        sided=mode == SIDED)
-            vis, near = shadow.here, near | shadow.near | edges.near_terminator(nl, light, motion, lookup(p.radii, idx), width)
+            radius = lookup(p.radii, idx)
+            vis, near = shadow.here, (near | shadow.near | edges.near_terminator(nl, light, motion, radius, width)
+                                      | edges.near_highlight(cos_g, ks, beta, motion, radius, width))
         term = local_light(d, ks, beta, p.ke, nl, cos_g, vis, colour, sky)
         if mode == SIDED:
             flip = flip.nearer(edges.Flip(shadow.x, local_light(d, ks, beta, p.ke, nl, cos_g, shadow.there, colour, sky) - term))
@@ -493,12 +495,12 @@ def subdivided_pixels(best: edges.Best, width):
     """Which pixels `trace_edges` subdivides into sub-boxes: those whose box (`width` sample
     steps) the nearest silhouette or intersection curve may cross (within
     `edges.CROSSING` boxes), seen directly, in a mirror or through glass, and those with
-    a shadow edge or a terminator that may cross it, or a rim near it, at any hit
-    (`Best.nonlinear`). Where one edge crosses a box, others often lie near it (an
-    outline and its own shadow on the floor, two shadows, a reflection's edges near a
-    mirror's rim), and one straight edge per pixel misplaces their derivatives; across a
-    terminator or near a rim the colour is far from linear, and one point's derivative
-    is not the box's."""
+    a shadow edge or a terminator that may cross it, a highlight narrow across it, or a
+    rim near it, at any hit (`Best.nonlinear`). Where one edge crosses a box, others
+    often lie near it (an outline and its own shadow on the floor, two shadows, a
+    reflection's edges near a mirror's rim), and one straight edge per pixel misplaces
+    their derivatives; across a terminator or a narrow highlight, or near a rim, the
+    colour is far from linear, and one point's derivative is not the box's."""
     crossed = (best.edge >= 0) & (best.score < edges.CROSSING * width)
     return crossed | best.nonlinear
 
