@@ -496,29 +496,31 @@ def test_two_levels_of_sub_boxes_are_the_mean_of_their_boxes():
     assert np.abs(expected - a.mean(axis=1)).max() > 0.1  # the second level changed something
 
 
-@pytest.mark.slow
-def test_boxes_a_terminator_crosses_are_subdivided():
-    """The occlusion scene's back sphere, where its terminator (N·L = 0) crosses pixels
-    that no outline does (found here by 8 × 8 rays a pixel meeting the sphere, N·L
-    changing sign among them): shading is continuous there but far from linear, so such
-    pixels get sub-boxes too: with `subdivide=2` each is the mean of its 4 × 4
-    sub-boxes (one-box renders at their centres), image and radius derivative, where
-    one box takes both from the pixel's centre alone."""
-    s = scene("occlusion")
-    p, w, h, k = s.params, s.structure.width, s.structure.height, 1
+def sphere_samples(s: rtjax.Scene, k: int):
+    """8 × 8 rays a pixel: which meet sphere k first, and there N·L and cos γ = R_L·V for
+    the first light (`shading.phong_angles`), each (h, 8, w, 8)."""
+    p, w, h = s.params, s.structure.width, s.structure.height
     u = (np.arange(8) + 0.5) / 8
     x, y = np.meshgrid(np.arange(w)[:, None] + u, np.arange(h)[:, None] + u)  # (h·8, w·8)
     o, d = rtjax.camera.rays_through(p.eye, p.refp, p.vang, w, h, jnp.asarray(np.stack([x.ravel(), y.ravel()])))
     t, index, _ = rtjax.spheres.nearest(o, d, p.centers, p.radii, jnp.full(x.size, -1), 1e-6, False)
-    t = np.where(np.isfinite(np.asarray(t)), np.asarray(t), 0)  # rays that meet nothing: any point
-    normal = (np.asarray(o) + t * np.asarray(d) - np.asarray(p.centers[k])[:, None]) / float(p.radii[k])
-    nl = (np.asarray(p.light_dirs[0]) @ normal).reshape(h, 8, w, 8)
-    on = (np.asarray(index) == k).reshape(h, 8, w, 8).all(axis=(1, 3))
-    rows, cols = np.nonzero(on & (nl.max(axis=(1, 3)) > 0) & (nl.min(axis=(1, 3)) < 0))
+    met = (np.asarray(index) == k) & np.isfinite(np.asarray(t))
+    t, d = np.where(met, np.asarray(t), 0), np.asarray(d)  # rays that meet nothing: any point
+    normal = (np.asarray(o) + t * d - np.asarray(p.centers[k])[:, None]) / float(p.radii[k])
+    light = np.asarray(p.light_dirs[0]) / np.linalg.norm(np.asarray(p.light_dirs[0]))
+    nl = light @ normal
+    cos_g = np.einsum("ip,ip->p", 2 * nl * normal - light[:, None], -d / np.linalg.norm(d, axis=0))
+    return tuple(a.reshape(h, 8, w, 8) for a in (met, nl, cos_g))
+
+
+def assert_pixels_are_their_sub_boxes(s: rtjax.Scene, k: int, rows, cols):
+    """With `subdivide=2` the pixels (rows, cols) are each the mean of their 4 × 4
+    sub-boxes (one-box renders at their centres), image and the derivative in sphere
+    k's radius, where one box (`subdivide=0`) is off by over a level in both."""
     assert len(rows) >= 4
 
     def grown(v):
-        return s.replace(radii=p.radii.at[k].add(v))
+        return s.replace(radii=s.params.radii.at[k].add(v))
 
     def pixels(subdivide):
         return jax.jvp(lambda v: rtjax.render(grown(v), edges=WIDTH, subdivide=subdivide)[rows, cols], (0.0,), (1.0,))
@@ -530,6 +532,18 @@ def test_boxes_a_terminator_crosses_are_subdivided():
     np.testing.assert_allclose(image, mean, atol=0.05)
     np.testing.assert_allclose(tangent, mean_tangent, atol=0.05)
     assert np.abs(np.asarray(one) - mean).max() > 1 and np.abs(np.asarray(one_tangent) - mean_tangent).max() > 1
+
+
+@pytest.mark.slow
+def test_boxes_a_terminator_crosses_are_subdivided():
+    """The occlusion scene's back sphere, where its terminator (N·L = 0) crosses pixels
+    that no outline does (found here by 8 × 8 rays a pixel meeting the sphere, N·L
+    changing sign among them): shading is continuous there but far from linear, so such
+    pixels get sub-boxes too (`assert_pixels_are_their_sub_boxes`)."""
+    s, k = scene("occlusion"), 1
+    met, nl, _ = sphere_samples(s, k)
+    rows, cols = np.nonzero(met.all(axis=(1, 3)) & (nl.max(axis=(1, 3)) > 0) & (nl.min(axis=(1, 3)) < 0))
+    assert_pixels_are_their_sub_boxes(s, k, rows, cols)
 
 
 @pytest.mark.slow
@@ -537,41 +551,13 @@ def test_boxes_a_small_highlight_lies_in_are_subdivided():
     """The single sphere with a sharp highlight (β = 60: a lobe a few pixels wide, found
     here by 8 × 8 rays a pixel meeting the sphere, lit, and some with cos γ^β > 0.1):
     shading is smooth there but far from linear across a pixel, so such pixels get
-    sub-boxes (`edges.near_highlight`): with `subdivide=2` each is the mean of its 4 × 4
-    sub-boxes (one-box renders at their centres), image and radius derivative, where
-    one box takes both from the pixel's centre alone."""
-    s = scene("single")
-    s = s.replace(beta=s.params.beta.at[0].set(60.0))
-    p, w, h, k = s.params, s.structure.width, s.structure.height, 0
-    u = (np.arange(8) + 0.5) / 8
-    x, y = np.meshgrid(np.arange(w)[:, None] + u, np.arange(h)[:, None] + u)  # (h·8, w·8)
-    o, d = rtjax.camera.rays_through(p.eye, p.refp, p.vang, w, h, jnp.asarray(np.stack([x.ravel(), y.ravel()])))
-    t, index, _ = rtjax.spheres.nearest(o, d, p.centers, p.radii, jnp.full(x.size, -1), 1e-6, False)
-    met = (np.asarray(index) == k) & np.isfinite(np.asarray(t))
-    t = np.where(met, np.asarray(t), 0)  # rays that meet nothing: any point
-    d = np.asarray(d)
-    normal = (np.asarray(o) + t * d - np.asarray(p.centers[k])[:, None]) / float(p.radii[k])
-    light = np.asarray(p.light_dirs[0]) / np.linalg.norm(np.asarray(p.light_dirs[0]))
-    nl = light @ normal
-    cos_g = np.einsum("ip,ip->p", 2 * nl * normal - light[:, None], -d / np.linalg.norm(d, axis=0))
-    lobe = (np.clip(cos_g, 0, 1) ** 60).reshape(h, 8, w, 8)
-    on = (met & (nl > 0)).reshape(h, 8, w, 8).all(axis=(1, 3))
-    rows, cols = np.nonzero(on & (lobe.max(axis=(1, 3)) > 0.1))
-    assert len(rows) >= 4
-
-    def grown(v):
-        return s.replace(radii=p.radii.at[k].add(v))
-
-    def pixels(subdivide):
-        return jax.jvp(lambda v: rtjax.render(grown(v), edges=WIDTH, subdivide=subdivide)[rows, cols], (0.0,), (1.0,))
-
-    centres = sub_box_centres(np.stack([cols + 0.5, rows + 0.5], -1))
-    boxes = jax.jvp(lambda v: rtjax.render_samples(grown(v), centres, step=0.25, edges=WIDTH), (0.0,), (1.0,))
-    (image, tangent), (one, one_tangent) = pixels(2), pixels(0)
-    mean, mean_tangent = (np.asarray(a).reshape(len(rows), 16, 3).mean(axis=1) for a in boxes)
-    np.testing.assert_allclose(image, mean, atol=0.05)
-    np.testing.assert_allclose(tangent, mean_tangent, atol=0.05)
-    assert np.abs(np.asarray(one) - mean).max() > 1 and np.abs(np.asarray(one_tangent) - mean_tangent).max() > 1
+    sub-boxes (`edges.near_highlight`, `assert_pixels_are_their_sub_boxes`)."""
+    s, k = scene("single"), 0
+    s = s.replace(beta=s.params.beta.at[k].set(60.0))
+    met, nl, cos_g = sphere_samples(s, k)
+    lobe = np.clip(cos_g, 0, 1) ** 60
+    rows, cols = np.nonzero((met & (nl > 0)).all(axis=(1, 3)) & (lobe.max(axis=(1, 3)) > 0.1))
+    assert_pixels_are_their_sub_boxes(s, k, rows, cols)
 
 
 @pytest.mark.slow
