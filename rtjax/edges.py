@@ -306,8 +306,8 @@ def near_highlight(cos_g, ks, beta, motion: Motion, radius, width):
     """Whether each hit's specular highlight for one light (ks·max(cos γ, 0)^β, a lobe
     about 1/√β wide in γ) may be narrower than its box of `width` sample steps shows:
     over the box γ turns by up to twice the normal's turn (the hit's motion / r), and
-    where that is over `HIGHLIGHT_TURN` lobe widths within `HIGHLIGHT_REACH` of the
-    lobe's peak, shading is smooth but far from linear across the box (a small sphere's
+    where that is over `HIGHLIGHT_TURN` lobe widths within `HIGHLIGHT_REACH` widths of
+    the lobe's peak, shading is smooth but far from linear across the box (a small sphere's
     highlight, or one a glass ball shrinks, inside a pixel): such boxes are worth
     sub-boxes (`trace.subdivided_pixels`), as a point's derivative is not the box's."""
     sg = jax.lax.stop_gradient
@@ -367,8 +367,9 @@ class EdgeWatch:
     (`curves.nearest_curve`), where they are nearer. `nonlinear`: also whether, at a
     hit of any segment (seen directly, in a mirror or through glass), a shadow edge or a
     terminator may cross the box or a highlight is narrow across it (as the segment's
-    shading found them: `Shade.near`), or the rim of the sphere met lies within `RIM` boxes (`Best.nonlinear`): where the
-    box's colour is far from linear across it, though no silhouette crosses it."""
+    shading found them: `Shade.near`), or the rim of the sphere met lies within `RIM`
+    boxes (`Best.nonlinear`): where the box's colour is far from linear across it,
+    though no silhouette crosses it."""
 
     def __init__(self, centers, radii, tmin, width: float, curves: bool = False, nonlinear: bool = False):
         self.centers, self.radii, self.tmin, self.width, self.curves = centers, radii, tmin, width, curves
