@@ -548,11 +548,12 @@ def test_boxes_a_terminator_crosses_are_subdivided():
 
 @pytest.mark.slow
 def test_boxes_a_small_highlight_lies_in_are_subdivided():
-    """The single sphere with a sharp highlight (β = 60: a lobe a few pixels wide, found
-    here by 8 × 8 rays a pixel meeting the sphere, lit, and some with cos γ^β > 0.1):
-    shading is smooth there but far from linear across a pixel, so such pixels get
-    sub-boxes (`edges.near_highlight`, `assert_pixels_are_their_sub_boxes`)."""
-    s, k = scene("single"), 0
+    """The occlusion scene's front sphere with a sharp highlight (β = 60: a lobe a few
+    pixels wide, found here by 8 × 8 rays a pixel meeting the sphere, lit, and some with
+    cos γ^β > 0.1): shading is smooth there but far from linear across a pixel, so such
+    pixels get sub-boxes (`edges.near_highlight`, `assert_pixels_are_their_sub_boxes`;
+    the terminator test's scene, so that the two share their compiled renders)."""
+    s, k = scene("occlusion"), 0
     s = s.replace(beta=s.params.beta.at[k].set(60.0))
     met, nl, cos_g = sphere_samples(s, k)
     lobe = np.clip(cos_g, 0, 1) ** 60
