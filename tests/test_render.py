@@ -251,9 +251,10 @@ def test_bad_render_options():
 
 def test_subdivide_defaults_to_sub_boxes_in_small_images():
     """`subdivide=None` (the default of `render` and the batched renders) resolves to
-    16 × 16 sub-boxes where edges are (4 halvings: `trace.sub_box_levels`) in the silhouette-aware mode on images of at most 4,096 pixels, where a
-    pixel often holds several edges, with mirrors and glass or without; to one box on
-    larger images and without the mode; a given value is kept."""
+    16 × 16 sub-boxes where edges are (4 halvings: `trace.sub_box_levels`) in the
+    silhouette-aware mode on images of at most 4,096 pixels, where a pixel often holds
+    several edges, with mirrors and glass or without; to one box on larger images and
+    without the mode; a given value is kept."""
     from rtjax.render import resolve_options
 
     def halvings(scene, edges=1.0, depth=None, subdivide=None):
