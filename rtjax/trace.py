@@ -556,17 +556,20 @@ def _subdivided(s: Structure, p: Params, primary, depth: int, width, capacity: i
     first_boxes = rounds[0] * groups[0] * kks[0]  # the first level's sub-boxes, round after round
     starts = [1 + sum(rounds[:i]) for i in range(len(levels))]  # each level's first round
 
+    def padded(chosen, level: int):  # the boxes chosen[level] picked, padded to whole rounds
+        return jnp.pad(chosen[level].index, (0, rounds[level] * groups[level] - caps[level]))
+
     def where_in_pixel(chosen, level: int, q):
         """The sub-boxes of level `level`'s round q (of the boxes chosen[level] picked), as
         `size` rays: their pixels, their centres' offsets from the pixels' centres in
         pixel boxes (2, size), how much smaller than a pixel they are, and how many of
         them are wanted."""
         g, kk = groups[level], kks[level]
-        box = jnp.pad(chosen[level].index, (0, rounds[level] * g - caps[level]))[q * g + jnp.arange(g)]
+        box = padded(chosen, level)[q * g + jnp.arange(g)]
         if level == 0:
             pixel, centre, scale = box, jnp.zeros((2, g), offsets[0].dtype), 1.0
         else:  # a first-level sub-box: its pixel, and its centre
-            pixel = jnp.pad(chosen[0].index, (0, rounds[0] * groups[0] - caps[0]))[box // kks[0]]
+            pixel = padded(chosen, 0)[box // kks[0]]
             centre, scale = offsets[0][box % kks[0]].T, 2.0 ** -levels[0]
         moved = jnp.repeat(centre, kk, axis=-1) + jnp.tile(offsets[level].T * scale, (1, g))
         return (pad_last(jnp.repeat(pixel, kk), size), pad_last(moved, size),
