@@ -32,10 +32,6 @@ from edge_derivatives import COARSE_KEYS, FINE_KEYS, compare, derivative_images,
 from edge_scenes import DECKS, SPP
 from rtjax import reference
 
-#: compile-bound tolerance checks: XLA's quick build (`conftest.quick_build`)
-pytestmark = pytest.mark.usefixtures("quick_build")
-
-
 @functools.lru_cache(maxsize=None)
 def mode(name: str):
     """The mode as `render` does it by default at these sizes: 16 × 16 sub-boxes where
