@@ -475,21 +475,19 @@ def test_two_levels_of_sub_boxes_are_the_mean_of_their_boxes():
     s = scene("single")
     with quick_xla():  # a tolerance check (0.05 levels); the compile is what costs
         image = {h: np.asarray(rtjax.render(s, edges=WIDTH, subdivide=h)) for h in (2, 4)}
-    plain_image = plain("single")
-    rows, cols = np.nonzero(np.abs(image[2] - plain_image).max(axis=-1) > 5)  # pixels an edge crosses
-    pick = np.linspace(0, len(rows) - 1, 12).astype(int)
-    pixels = np.stack([cols[pick] + 0.5, rows[pick] + 0.5], axis=-1)  # (12, 2) centres
-    centres = sub_box_centres(pixels)  # (12·16, 2)
-    with quick_xla():
+        plain_image = plain("single")
+        rows, cols = np.nonzero(np.abs(image[2] - plain_image).max(axis=-1) > 5)  # pixels an edge crosses
+        pick = np.linspace(0, len(rows) - 1, 12).astype(int)
+        pixels = np.stack([cols[pick] + 0.5, rows[pick] + 0.5], axis=-1)  # (12, 2) centres
+        centres = sub_box_centres(pixels)  # (12·16, 2)
         a = np.asarray(rtjax.render_samples(s, centres, step=0.25, edges=WIDTH)).reshape(12, 16, 3)
-    edge = {w: rtjax.edge_samples(s, centres, step=0.25, edges=w) for w in (WIDTH, 2 * WIDTH)}
-    has_edge = {w: np.any(np.asarray(e.inside) != np.asarray(e.outside), axis=-1).reshape(12, 16) for w, e in edge.items()}
-    crossed = has_edge[WIDTH] & (np.abs(np.asarray(edge[WIDTH].x)).reshape(12, 16) < rtjax.edges.CROSSING)
-    # within two boxes of the outline but not crossed: divided again or not (the rim's rule
-    # bounds its distance from below), so the pixel may take either colour of such a box
-    either = has_edge[2 * WIDTH] & ~crossed
-    fine = sub_box_centres(centres, 0.25)
-    with quick_xla():
+        edge = {w: rtjax.edge_samples(s, centres, step=0.25, edges=w) for w in (WIDTH, 2 * WIDTH)}
+        has_edge = {w: np.any(np.asarray(e.inside) != np.asarray(e.outside), axis=-1).reshape(12, 16) for w, e in edge.items()}
+        crossed = has_edge[WIDTH] & (np.abs(np.asarray(edge[WIDTH].x)).reshape(12, 16) < rtjax.edges.CROSSING)
+        # within two boxes of the outline but not crossed: divided again or not (the rim's rule
+        # bounds its distance from below), so the pixel may take either colour of such a box
+        either = has_edge[2 * WIDTH] & ~crossed
+        fine = sub_box_centres(centres, 0.25)
         b = np.asarray(rtjax.render_samples(s, fine, step=1 / 16, edges=WIDTH)).reshape(12, 16, 16, 3).mean(axis=2)
     assert 0 < crossed.sum() < crossed.size
     np.testing.assert_allclose(image[2][rows[pick], cols[pick]], a.mean(axis=1), atol=0.05)

@@ -32,6 +32,7 @@ from edge_derivatives import COARSE_KEYS, FINE_KEYS, compare, derivative_images,
 from edge_scenes import DECKS, SPP
 from rtjax import reference
 
+
 @functools.lru_cache(maxsize=None)
 def mode(name: str):
     """The mode as `render` does it by default at these sizes: 16 × 16 sub-boxes where
