@@ -302,16 +302,23 @@ def near_terminator(nl, light, motion: Motion, radius, width):
     return jnp.abs(sg(nl)) < CROSSING * width * rate
 
 
-def near_highlight(cos_g, ks, beta, motion: Motion, radius, width):
+def hit_speed(motion: Motion):
+    """How far each hit point moves per sample step, |motion| over both directions (not
+    differentiated): with the sphere's radius, how fast its normal turns
+    (`near_highlight`); light-independent, so taken once per hit."""
+    sg = jax.lax.stop_gradient
+    return safe_sqrt(sum(dot(sg(m), sg(m)) for m in motion), tiny(motion.x.dtype))
+
+
+def near_highlight(cos_g, ks, beta, speed, radius, width):
     """Whether each hit's specular highlight for one light (ks·max(cos γ, 0)^β, a lobe
     about 1/√β wide in γ) may be narrower than its box of `width` sample steps shows:
-    over the box γ turns by up to twice the normal's turn (the hit's motion / r), and
-    where that is over `HIGHLIGHT_TURN` lobe widths within `HIGHLIGHT_REACH` widths of
-    the lobe's peak, shading is smooth but far from linear across the box (a small sphere's
-    highlight, or one a glass ball shrinks, inside a pixel): such boxes are worth
-    sub-boxes (`trace.subdivided_pixels`), as a point's derivative is not the box's."""
+    over the box γ turns by up to twice the normal's turn (the hit's `hit_speed` / r),
+    and where that is over `HIGHLIGHT_TURN` lobe widths within `HIGHLIGHT_REACH` widths
+    of the lobe's peak, shading is smooth but far from linear across the box (a small
+    sphere's highlight, or one a glass ball shrinks, inside a pixel): such boxes are
+    worth sub-boxes (`trace.subdivided_pixels`), as a point's derivative is not the box's."""
     sg = jax.lax.stop_gradient
-    speed = safe_sqrt(sum(dot(sg(m), sg(m)) for m in motion), tiny(cos_g.dtype))
     turn = 2 * CROSSING * width * speed / sg(radius)
     gamma = jnp.arccos(jnp.clip(sg(cos_g), -1, 1))
     root = jnp.sqrt(sg(beta))

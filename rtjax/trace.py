@@ -115,6 +115,8 @@ def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, mode
     d = surface_colour(s, p, m, idx, hit.normal_out)
     ks, beta = lookup(m.ks, idx), lookup(m.beta, idx)
     sky = None if p.occlusion is None else primary_sky(p, hit, hit.live if primary is None else primary)
+    if mode != PLAIN:
+        radius, speed = lookup(p.radii, idx), edges.hit_speed(motion)
     visible = []
     for i, (light, colour) in enumerate(zip(m.lights, p.light_colors)):
         nl, cos_g = phong_angles(n, v, light)
@@ -125,9 +127,8 @@ def shade_hit(s: Structure, p: Params, m: Material, hit: spheres.Hit, n, v, mode
         else:
             shadow = edges.soft_shadow(hit, light, p.centers, p.radii, m.tmin, m.shadow_factor, motion, width,
                                        sided=mode == SIDED)
-            radius = lookup(p.radii, idx)
             vis, near = shadow.here, (near | shadow.near | edges.near_terminator(nl, light, motion, radius, width)
-                                      | edges.near_highlight(cos_g, ks, beta, motion, radius, width))
+                                      | edges.near_highlight(cos_g, ks, beta, speed, radius, width))
         term = local_light(d, ks, beta, p.ke, nl, cos_g, vis, colour, sky)
         if mode == SIDED:
             flip = flip.nearer(edges.Flip(shadow.x, local_light(d, ks, beta, p.ke, nl, cos_g, shadow.there, colour, sky) - term))
