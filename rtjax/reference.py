@@ -232,21 +232,25 @@ def camera_basis(frame: Frame):
     return w, u, v
 
 
-def _primary_rays(frame: Frame, spp: int):
-    """Unit directions of shape (H, W, spp*spp, 3)."""
+def directions(frame: Frame, x, y) -> np.ndarray:
+    """Unit directions (..., 3) from the eye through image positions (x, y) in pixels,
+    broadcast ((i + ½, j + ½) is pixel (i, j)'s centre)."""
     W, H = image_size(frame)
     w, u, v = camera_basis(frame)
     R = np.linalg.norm(np.asarray(frame.refp, float) - np.asarray(frame.eye, float))
     hx = R * math.tan(math.radians(frame.ha) / 2)
     hy = R * math.tan(math.radians(frame.va) / 2)
+    sx, sy = np.broadcast_arrays((np.asarray(x) / W) * 2 - 1, 1 - (np.asarray(y) / H) * 2)
+    return _normalize(R * w + (sx * hx)[..., None] * u + (sy * hy)[..., None] * v)
+
+
+def _primary_rays(frame: Frame, spp: int):
+    """Unit directions of shape (H, W, spp*spp, 3)."""
+    W, H = image_size(frame)
     sub = (np.arange(spp) + 0.5) / spp  # sub-sample offsets within a pixel
     i = np.arange(W)[None, :, None, None] + sub[None, None, None, :]  # across
     j = np.arange(H)[:, None, None, None] + sub[None, None, :, None]  # down
-    sx = (i / W) * 2 - 1  # (1, W, 1, spp)
-    sy = 1 - (j / H) * 2  # (H, 1, spp, 1)
-    sx, sy = np.broadcast_arrays(sx, sy)  # (H, W, spp, spp)
-    p = R * w + (sx * hx)[..., None] * u + (sy * hy)[..., None] * v
-    return _normalize(p.reshape(H, W, spp * spp, 3))
+    return directions(frame, i, j).reshape(H, W, spp * spp, 3)
 
 
 # --------------------------------------------------------------------------------------
@@ -459,6 +463,15 @@ def render_reference(frame: Frame, depth: int = 10, spp: int = 1) -> np.ndarray:
     col = _trace(frame, o, d, depth)
     col = np.clip(col, 0.0, 255.0).reshape(H, W, K, 3)
     return col.mean(axis=2)
+
+
+def render_positions(frame: Frame, xy, depth: int = 10) -> np.ndarray:
+    """Colours (K, 3), float64, clamped to [0, 255], through K image positions `xy` (K, 2)
+    in pixels: `rtjax.render_samples`'s counterpart, for checks of one box or a few."""
+    xy = np.asarray(xy, float)
+    d = directions(frame, xy[:, 0], xy[:, 1])
+    o = np.broadcast_to(np.asarray(frame.eye, float), d.shape).copy()
+    return np.clip(_trace(frame, o, d, depth), 0.0, 255.0)
 
 
 def quantize(img: np.ndarray) -> np.ndarray:

@@ -261,14 +261,18 @@ def nearest_hit(o, d, centers, radii, origin, tmin, cull: bool, toggles: Toggles
     scene sits far from the origin (no large o + t·d − c cancellation). `toggles` (the
     silhouette mode's first segment): `exclude` removes one sphere; `force` makes the
     ray see that sphere: if its nearest hit is anything else, it grazes that sphere at
-    its silhouette point c + r·l̂, where the ray passes closest to it (entering).
+    its silhouette point c + r·l̂, where the ray passes closest to it (entering), if
+    that lies ahead (beyond `tmin`); a ray that passes it behind its origin sees what
+    it meets (through glass near a rim the side of an edge can leave in another
+    direction than the pixel's ray, and a point behind it is no side of that edge).
     """
     tab = None if cull else table(o, d, centers)
     exclude = None if toggles is None else toggles.exclude
     found, idx, far = keep_hit(*nearest(o, d, centers, radii, origin, tmin, cull, exclude, active, tab),
                                centers.shape[0])
     if toggles is not None:
-        forced = (toggles.force >= 0) & (~found | (idx != toggles.force))
+        passes = dot(take_rows(centers, jnp.maximum(toggles.force, 0)) - o, d) > tmin  # its outline lies ahead
+        forced = (toggles.force >= 0) & (~found | (idx != toggles.force)) & passes
         found, idx, far = found | forced, jnp.where(forced, toggles.force, idx), far & ~forced
     c, r = take_rows(centers, idx), lookup(radii, idx)
     b, l, sq = sphere_geometry(o, d, c, r)

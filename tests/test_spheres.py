@@ -66,6 +66,25 @@ def test_reverse_mode_keeps_the_choices_not_the_tables(capsys):
     assert "[5,12]" not in saved  # no ray–sphere table
 
 
+# -- the silhouette mode's toggles ----------------------------------------------------------
+
+
+def test_a_forced_sphere_is_seen_only_where_its_outline_lies_ahead():
+    """`Toggles.force` makes a ray that misses the sphere graze it at its silhouette
+    point, where the ray passes closest to it; a ray that passes it behind its origin
+    (here, one leaving the sphere's side of the scene) keeps what it meets, nothing."""
+    o = jnp.zeros((3, 3))
+    d = jnp.asarray(np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 0, 1.0]]).T)  # towards it, away, across (closest at o)
+    centers, radii = jnp.asarray([[5.0, 2.0, 0.0]]), jnp.asarray([1.0])
+    toggles = spheres.Toggles(jnp.full(3, -1), jnp.zeros(3, jnp.int32))
+    hit = spheres.nearest_hit(o, d, centers, radii, jnp.full(3, -1), 1e-4, False, toggles)
+    np.testing.assert_array_equal(np.asarray(hit.found), [True, False, False])
+    np.testing.assert_allclose(np.asarray(hit.t)[0], 5.0)  # where it passes closest to the centre
+    np.testing.assert_allclose(np.asarray(hit.point)[:, 0], [5.0, 1.0, 0.0])  # its silhouette point c + r·l̂
+    free = spheres.nearest_hit(o, d, centers, radii, jnp.full(3, -1), 1e-4, False)
+    assert not np.asarray(free.found).any()
+
+
 # -- culling ---------------------------------------------------------------------------------
 
 
