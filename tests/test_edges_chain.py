@@ -193,11 +193,11 @@ RIM = FLOOR + (
 
 @pytest.mark.slow
 def test_an_edge_seen_through_a_glass_rim_has_sides_that_see_the_scene():
-    """A 1/16-px box (a second-level sub-box of pixel (17, 16)) whose edge, the floor's
-    outline, lies in the mirror seen through the glass ball's rim: its colour and its
-    derivative against the mirror's y as the reference's 64 × 64 samples of the box give
-    them (its central differences at ±0.005 units: −19; at ±0.01: −32, the sampled
-    band's noise), not those of a point behind the side's ray."""
+    """A 1/16-px box (a second-level sub-box of the pixel in column 17, row 16) whose
+    edge, the floor's outline, lies in the mirror seen through the glass ball's rim: its
+    colour and its derivative against the mirror's y as the reference's 64 × 64 samples
+    of the box give them (its central differences at ±0.005 units: −19; at ±0.01: −32,
+    the sampled band's noise), not those of a point behind the side's ray."""
     import copy
 
     import jax
