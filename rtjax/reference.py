@@ -244,15 +244,6 @@ def directions(frame: Frame, x, y) -> np.ndarray:
     return _normalize(R * w + (sx * hx)[..., None] * u + (sy * hy)[..., None] * v)
 
 
-def _primary_rays(frame: Frame, spp: int):
-    """Unit directions of shape (H, W, spp*spp, 3)."""
-    W, H = image_size(frame)
-    sub = (np.arange(spp) + 0.5) / spp  # sub-sample offsets within a pixel
-    i = np.arange(W)[None, :, None, None] + sub[None, None, None, :]  # across
-    j = np.arange(H)[:, None, None, None] + sub[None, None, :, None]  # down
-    return directions(frame, i, j).reshape(H, W, spp * spp, 3)
-
-
 # --------------------------------------------------------------------------------------
 # Geometry helpers
 # --------------------------------------------------------------------------------------
@@ -456,13 +447,12 @@ def _trace(frame: Frame, o, d, depth: int):
 def render_reference(frame: Frame, depth: int = 10, spp: int = 1) -> np.ndarray:
     """Render a frame: float64 (H, W, 3), samples clamped to [0, 255] then averaged."""
     W, H = image_size(frame)
-    dirs = _primary_rays(frame, spp)  # (H, W, K, 3)
-    K = dirs.shape[2]
-    d = dirs.reshape(-1, 3)
-    o = np.broadcast_to(np.asarray(frame.eye, float), d.shape).copy()
-    col = _trace(frame, o, d, depth)
-    col = np.clip(col, 0.0, 255.0).reshape(H, W, K, 3)
-    return col.mean(axis=2)
+    sub = (np.arange(spp) + 0.5) / spp  # sub-sample offsets within a pixel
+    across = np.arange(W)[None, :, None, None] + sub[None, None, None, :]
+    down = np.arange(H)[:, None, None, None] + sub[None, None, :, None]
+    x, y = np.broadcast_arrays(across, down)  # (H, W, spp, spp)
+    col = render_positions(frame, np.stack([x.ravel(), y.ravel()], axis=-1), depth)
+    return col.reshape(H, W, spp * spp, 3).mean(axis=2)
 
 
 def render_positions(frame: Frame, xy, depth: int = 10) -> np.ndarray:
