@@ -23,6 +23,10 @@ normal in the image. Two edges are handled that way:
   shadow ray's distance to it is |l| − r, and the hit point's motion per pixel gives
   its rate. The nearest occluder edge's hard factor (0 or kt²) becomes 1 − (1 − τ)·α.
 
+Box mode also takes intersection curves of spheres cutting into one another
+(`rtjax.curves`) and the boundary of total internal reflection where a ray leaves a
+glass sphere (`critical_terms`) as a pixel's edge, where nearer.
+
 Not covered: a second edge in the same pixel (the nearer one in pixels wins, chosen
 by a bound on the distance, see `_candidates`), the
 specular term's cut-off at a terminator, and the curvature of an outline within a
@@ -364,6 +368,7 @@ class Best(NamedTuple):
     rays: object  # the chain's rays at that segment (`trace.Rays`, with their differentials), before it
     partner: Int[Array, " p"]  # an intersection curve: the sphere H the edge's sphere cuts into (else −1)
     nonlinear: "Bool[Array, ' p'] | None" = None  # watched: a shadow edge, terminator, narrow highlight or rim near a hit (`EdgeWatch`)
+    critical: "Bool[Array, ' p'] | None" = None  # watched for: the edge is where its glass sphere's exit turns to TIR
 
 
 class EdgeWatch:
@@ -376,18 +381,21 @@ class EdgeWatch:
     terminator may cross the box or a highlight is narrow across it (as the segment's
     shading found them: `Shade.near`), or the rim of the sphere met lies within `RIM`
     boxes (`Best.nonlinear`): where the box's colour is far from linear across it,
-    though no silhouette crosses it."""
+    though no silhouette crosses it. `critical` (a `Critical`): also the boundary of
+    total internal reflection where a ray leaves a glass sphere (`critical_terms`)."""
 
-    def __init__(self, centers, radii, tmin, width: float, curves: bool = False, nonlinear: bool = False):
+    def __init__(self, centers, radii, tmin, width: float, curves: bool = False, nonlinear: bool = False,
+                 critical: "Critical | None" = None):
         self.centers, self.radii, self.tmin, self.width, self.curves = centers, radii, tmin, width, curves
-        self.nonlinear = nonlinear
+        self.nonlinear, self.critical = nonlinear, critical
 
     def empty(self, rays) -> Best:
         """No edge found yet (the fold's start)."""
         n = rays.weight.shape
         none = jnp.full(n, -1, jnp.int32)
         nonlinear = jnp.zeros(n, bool) if self.nonlinear else None
-        return Best(jnp.full(n, jnp.inf, rays.o.dtype), none, jnp.zeros(n, bool), rays, none, nonlinear)
+        critical = None if self.critical is None else jnp.zeros(n, bool)
+        return Best(jnp.full(n, jnp.inf, rays.o.dtype), none, jnp.zeros(n, bool), rays, none, nonlinear, critical)
 
     def __call__(self, rays, hit: spheres.Hit, best: Best, near=None) -> Best:
         """`best` with this segment's nearest visible silhouette where it is nearer;
@@ -422,13 +430,20 @@ class EdgeWatch:
         delta = outline_terms(*sg((rays.o, rays.d, ox, dx, oy, dy, cc, rr)))[0]
         score = jnp.where((edge >= 0) & (jnp.abs(delta) < self.width), jnp.abs(delta), jnp.inf)
         edge = jnp.where(jnp.isfinite(score), edge, -1)
-        here = Best(score, edge, hit.index == edge, rays, jnp.full_like(edge, -1))
+        critical = None if self.critical is None else jnp.zeros_like(edge, bool)
+        here = Best(score, edge, hit.index == edge, rays, jnp.full_like(edge, -1), None, critical)
         if self.curves:
             cscore, cedge = curves.nearest_curve(rays.o, rays.d, rays.diff, rays.origin, rays.weight > 0, hit, tab,
                                                  self.centers, self.radii, self.width)
-            nearer = cscore < score
-            here = Best(jnp.where(nearer, cscore, score), jnp.where(nearer, cedge, edge), here.on_hit & ~nearer, rays,
-                        jnp.where(nearer, hit.index, -1))
+            nearer = cscore < here.score
+            here = here._replace(score=jnp.where(nearer, cscore, here.score), edge=jnp.where(nearer, cedge, here.edge),
+                                 on_hit=here.on_hit & ~nearer, partner=jnp.where(nearer, hit.index, -1))
+        if self.critical is not None:
+            tscore = self.critical.score(rays, hit, self.centers, self.radii, self.width)
+            nearer = tscore < here.score
+            here = here._replace(score=jnp.where(nearer, tscore, here.score),
+                                 edge=jnp.where(nearer, hit.index, here.edge), on_hit=here.on_hit & ~nearer,
+                                 partner=jnp.where(nearer, -1, here.partner), critical=nearer)
         better = checkpoint_name(here.score < best.score, spheres.CHOICE)
         chosen = jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), here._replace(nonlinear=None),
                                         best._replace(nonlinear=None))
@@ -438,9 +453,49 @@ class EdgeWatch:
         return chosen._replace(nonlinear=best.nonlinear | (near & hit.found & (rays.weight > 0)) | rim)
 
 
+def critical_terms(o, d, df: Differentials, c, r, ior):
+    """Signed distance δ (in sample steps) from rays inside a glass sphere (c, r) of index
+    `ior` to the boundary of total internal reflection at their exit, positive on the
+    reflecting side, and its normal (nx, ny) in the image.
+
+    At the exit cos²θ = 1 − |l|²/r² (l: the ray's offset from the centre), so Snell's
+    k = 1 − ior²(1 − cos²θ) crosses 0 where |l| = r/ior: the boundary is the cylinder of
+    that radius around the ray, and |l| − r/ior (`edge_terms`) its distance. A ray that
+    refracted into a lone sphere leaves it at its entry angle and never meets it
+    (`Critical.score`); one that another sphere turned inside it, or the eye inside it,
+    may."""
+    delta, nx, ny, _, _ = edge_terms(o, d, *df, c, r / ior)
+    return delta, nx, ny
+
+
+class Critical(NamedTuple):
+    """Where the silhouette mode watches for the boundary of total internal reflection
+    (`EdgeWatch`): the glass spheres, their indices and the chain's depth (a ray at
+    the last segment spawns no next one, so its exit has no such edge)."""
+
+    glass: Bool[Array, " n"]
+    ior: Float[Array, " n"]
+    depth: int
+
+    def score(self, rays, hit: spheres.Hit, centers, radii, width):
+        """Per ray, |δ| to the boundary at this segment's exit from a glass sphere, where
+        within `width` sample steps (else inf); not differentiated (it chooses)."""
+        sg = jax.lax.stop_gradient
+        k = jnp.maximum(hit.index, 0)
+        # a chord keeps its angle with the surface at both ends: a ray that reached its exit
+        # from the same sphere's surface (refracted in, or reflected inside) meets k as it
+        # was there (≥ 0 refracted in from air: the boundary only a phantom at the rim)
+        arrived = rays.origin != hit.index
+        leaving = hit.found & ~hit.entering & self.glass[k] & arrived & (rays.weight > 0) & (rays.level < self.depth)
+        c, r, ior = take_rows(sg(centers), k), lookup(sg(radii), k), lookup(sg(self.ior), k)
+        delta = jnp.abs(critical_terms(*sg((rays.o, rays.d, rays.diff)), c, r, ior)[0])
+        return jnp.where(leaving & (delta < width), delta, jnp.inf)
+
+
 class Sides(NamedTuple):
     """Both sides of each pixel's chosen edge: rays through the centroids of the two
-    parts of the pixel's box, and the fraction α on the edge sphere's side."""
+    parts of the pixel's box, and the fraction α on the edge sphere's side (at the
+    boundary of total internal reflection, the side that refracts out)."""
 
     edge: Int[Array, " p"]
     alpha: Float[Array, " p"]
@@ -493,7 +548,7 @@ def _chosen_or_met(edge, o, d, centers, radii):
     return c, r
 
 
-def primary_sides(best: Best, primary, centers, radii, width) -> Sides:
+def primary_sides(best: Best, primary, centers, radii, width, ior=None) -> Sides:
     """The box mode's sides: coverage α and the rays through the centroids of the inside
     and outside parts of the pixel's box, taken from the eye: the primary rays (o, d,
     their differentials) moved by the centroids' offsets in the image.
@@ -515,6 +570,9 @@ def primary_sides(best: Best, primary, centers, radii, width) -> Sides:
     leaves_e, leaves_h = ((r0.origin == k) & (k >= 0) for k in (met, best.partner))
     cd, cx, cy = curves.curve_terms(r0.o, r0.d, r0.diff, ce, re, ch, rh, leaves_e, leaves_h)
     delta, nx, ny = (jnp.where(curve, a, b) for a, b in ((cd, delta), (cx, nx), (cy, ny)))
+    if best.critical is not None:  # the boundary of total internal reflection: the edge sphere's exit
+        td, tx, ty = critical_terms(r0.o, r0.d, r0.diff, c, r, lookup(ior, jnp.maximum(best.edge, 0)))
+        delta, nx, ny = (jnp.where(best.critical, a, b) for a, b in ((td, delta), (tx, nx), (ty, ny)))
     alpha, z_in, z_out = split_box(-delta / width, nx, ny)
     return Sides(best.edge, alpha, -delta / width, *offset_rays(o, d, df, z_in, width, nx, ny),
                  *offset_rays(o, d, df, z_out, width, nx, ny))

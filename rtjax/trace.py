@@ -447,7 +447,9 @@ def _edge_pass(s: Structure, p: Params, primary, depth: int, width, mode: Mode, 
     o, d, diff = primary
     n = o.shape[1]
     m = prepare(s, p)
-    watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width, curves=mode == BOX, nonlinear=subdivided)
+    critical = edges.Critical(jnp.asarray(s.mask(GLASS)), p.ior, depth) if mode == BOX and s.has(GLASS) else None
+    watch = edges.EdgeWatch(p.centers, p.radii, m.tmin, width, curves=mode == BOX, nonlinear=subdivided,
+                            critical=critical)
     first = start_rays(o, d, mode, diff)
     if live is not None:
         first = first._replace(weight=jnp.where(jnp.arange(n) < live, first.weight, 0))
@@ -462,14 +464,16 @@ def _edge_pass(s: Structure, p: Params, primary, depth: int, width, mode: Mode, 
 
     none = jnp.full(packed.index.shape, -1, jnp.int32)
     if mode == BOX:  # both sides traced from the eye, the edge's segment toggled
-        side = edges.primary_sides(b, packed.gather((o, d, diff)), p.centers, p.radii, width)
+        side = edges.primary_sides(b, packed.gather((o, d, diff)), p.centers, p.radii, width, p.ior)
         start = start_rays(two(side.o_in, side.o_out), two(side.d_in, side.d_out), BOX,
                            edges.Differentials(*(two(a) for a in packed.gather(diff))))
         start = start._replace(weight=two(packed.valid.astype(start.weight.dtype)))
-        # E's side: a silhouette's sphere forced, a curve's partner H removed; the other side: E removed
+        # E's side: a silhouette's sphere forced, a curve's partner H removed; the other side: E
+        # removed; either side of the boundary of total internal reflection as it comes
         curve = b.partner >= 0
-        toggles = spheres.Toggles(two(jnp.where(curve, b.partner, none), side.edge),
-                                  two(jnp.where(curve, none, side.edge), none), two(r0.level))
+        toggled = side.edge if b.critical is None else jnp.where(b.critical, none, side.edge)
+        toggles = spheres.Toggles(two(jnp.where(curve, b.partner, none), toggled),
+                                  two(jnp.where(curve, none, toggled), none), two(r0.level))
     else:
         side = edges.both_sides(b, p.centers, p.radii, width)
         start = Rays(two(side.o_in, side.o_out), two(side.d_in, side.d_out), two(r0.origin),

@@ -61,6 +61,18 @@ DECKS = {
         + "eyep 0 -100 40\nrefp 0 0 -8\nvang 20 20\nsize 32\nrend x.ras\n",
         6,
     ),
+    # the eye inside a glass sphere (n = 1.5), 14 units off its centre: rays more than
+    # r/n = 13.3 units from the centre are totally reflected where they meet it, so the
+    # left of the image sees the glass from inside and the right sees out, a sphere and
+    # its shadow compressed near that boundary (24 pixels)
+    "inside": (
+        FLOOR
+        + "sphe 0 0 6 20\ntrpa 0.9 1.5 0.2 10\n"
+        + "sphe 10 48 -2 6\nopaq 0.9 0.5 0.2 0.4 10\n"
+        + "plig -0.4 -0.8 0.6 190 180 170\nelig 0.2\nback 40 60 110\n"
+        + "eyep 14 0 6\nrefp 31.1 47 -1.5\nvang 32 32\nsize 24\nrend x.ras\n",
+        6,
+    ),
     # no mirror, no glass: three opaque spheres clear of the floor, 40 pixels, the camera
     # off to the side; where an outline lies over its own shadow a pixel holds two edges
     "opaque": (

@@ -338,6 +338,36 @@ def test_silhouette_seen_through_glass(axis):
         assert abs(ad.sum() - fd.sum()) <= 0.05 * abs(fd.sum())
 
 
+def test_critical_boundary_is_where_the_reference_turns_to_total_internal_reflection():
+    """`edges.critical_terms`: a fan of rays from a point inside a glass sphere (n = 1.5),
+    8 units off the centre of a sphere of radius 10, one sample step a 1/200 rad turn:
+    the signed distance to the boundary of total internal reflection at their exit is
+    positive exactly where the reference's Snell's law has no solution there, and near
+    the boundary it is the rays' offset from it in steps (sin φ = (r/n)/8: the offset
+    from the centre at which k crosses 0)."""
+    from rtjax import edges
+
+    c, r, n, step = np.zeros(3), 10.0, 1.5, 1 / 200
+    phi = np.pi / 4 + step * np.arange(101)
+    d = np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)])
+    o = np.broadcast_to(np.array([8.0, 0, 0])[:, None], d.shape)
+    turn = np.stack([-np.sin(phi), np.cos(phi), np.zeros_like(phi)]) * step
+    still = np.zeros_like(d)
+    df = edges.Differentials(*(jnp.asarray(a) for a in (still, turn, still, still)))
+    centre = jnp.asarray(np.broadcast_to(c[:, None], d.shape))
+    delta = np.asarray(edges.critical_terms(jnp.asarray(o), jnp.asarray(d), df, centre, r, n)[0])
+    # the exit, and Snell's law there as the reference has it
+    b = np.sum((o - c[:, None]) * d, 0)
+    t = -b + np.sqrt(b**2 - np.sum((o - c[:, None]) ** 2, 0) + r**2)
+    normal = (o + t * d - c[:, None]) / r
+    _, tir = reference.refract(d.T, -normal.T, np.full(phi.size, n))
+    assert 20 < tir.sum() < 80  # both sides in the fan
+    np.testing.assert_array_equal(delta > 0, tir)
+    offset = (phi - np.arcsin(r / n / 8)) / step
+    near = np.abs(offset) < 2
+    np.testing.assert_allclose(delta[near], offset[near], atol=0.02)
+
+
 # --------------------------------------------------------------------------------------
 # (f) the blend's parts (`edge_samples`), what fitting at pixel centres uses
 

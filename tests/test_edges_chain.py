@@ -4,9 +4,10 @@ reference renderer.
 
 Scenes (`edge_scenes.py`, 32–48 px): the issue's held-out-like scene (a floor, an
 opaque sphere, a mirror and a glass sphere, one light, shadows on the floor), spheres
-that cut into one another, a glass sphere seen at total internal reflection, a 32-px
-image whose pixels hold several edges, and three opaque spheres on a floor (outlines
-over their own shadows). Parameters: centres and radii of every sphere but the floor,
+that cut into one another, a glass sphere of high index seen near its rim, a 32-px
+image whose pixels hold several edges, three opaque spheres on a floor (outlines
+over their own shadows), and the eye inside a glass sphere, where part of the view is
+totally reflected (its boundary an edge). Parameters: centres and radii of every sphere but the floor,
 and on the first scene the light's direction and the eye.
 
 The yardstick, `tests/data/edges_yardstick.npz`, is made by `scripts/edges_yardstick.py`
@@ -78,22 +79,26 @@ GOALS = {
     "tir": (0.9998, 0.025, 0.99),  # 0.9999, 1.0–1.3 %, 0.996 (4 × 4: 0.9998, 1.7–2.2 %, 0.991; one box: 0.9983, 11.0–11.3 %, 0.945)
     "crowded": (0.9995, 0.03, 0.985),  # 0.9999, 1.5–1.6 %, 0.991 (glass x) (4 × 4: 0.9907, 19.6–20.2 %, 0.936; one box: 0.9891, 26.3–26.8 %, 0.742)
     "opaque": (0.9995, 0.03, 0.995),  # 1.0000, 0.6–1.4 %, 0.999 (4 × 4: 0.9997, 2.5–2.8 %, 0.997; one box: 0.9980, 7.8–8.8 %, 0.979)
+    # since stop 63 (the boundary of total internal reflection an edge; before: −0.977, 71–80 %, 0.295)
+    "inside": (0.9995, 0.02, 0.99),  # 1.0000, 0.3–1.1 %, 0.993 (one box: 1.0000, 4.4–4.6 %, 0.968)
 }
 # the same against the coarse yardsticks (the issue's own kind), whose per-pixel figures
 # their steps bound: measured heldout 0.9971, 3.6–12.9 %, 0.794; overlap 0.9837,
 # 2.5–2.8 %, 0.666; tir 0.9995, 2.5–4.1 %, 0.921; crowded 0.9995, 4.1–4.2 %, 0.859;
-# opaque 0.9994, 1.5–5.5 %, 0.925
+# opaque 0.9994, 1.5–5.5 %, 0.925; inside 1.0000, 1.5–2.5 %, 0.570
 COARSE_GOALS = {
     "heldout": (0.996, 0.15, 0.78),
     "overlap": (0.98, 0.05, 0.65),
     "tir": (0.998, 0.06, 0.90),
     "crowded": (0.999, 0.06, 0.84),
     "opaque": (0.999, 0.07, 0.91),
+    "inside": (0.9995, 0.04, 0.55),
 }
 # the image's mean distance from the supersampled one (levels): measured heldout
 # 0.253 one box, 0.067 4 × 4, 0.035 16 × 16; overlap 0.251, 0.089, 0.042; tir 0.195,
-# 0.056, 0.021; crowded 0.576, 0.097, 0.036; opaque 0.190, 0.100, 0.027
-IMAGE_GOALS = {"heldout": 0.05, "overlap": 0.055, "tir": 0.035, "crowded": 0.05, "opaque": 0.04}
+# 0.056, 0.021; crowded 0.576, 0.097, 0.036; opaque 0.190, 0.100, 0.027; inside 0.202
+# one box, 0.044 16 × 16 (1.10 and 0.79 without the boundary of total internal reflection)
+IMAGE_GOALS = {"heldout": 0.05, "overlap": 0.055, "tir": 0.035, "crowded": 0.05, "opaque": 0.04, "inside": 0.055}
 
 
 @pytest.mark.slow
@@ -226,3 +231,39 @@ def test_an_edge_seen_through_a_glass_rim_has_sides_that_see_the_scene():
 
     np.testing.assert_allclose(value, box(0.0), atol=0.1)
     np.testing.assert_allclose(slope, (box(0.005) - box(-0.005)) / 0.01, atol=40)  # the point behind: 21,749
+
+
+@pytest.mark.slow
+def test_the_index_of_refraction_moves_the_boundary_of_total_internal_reflection():
+    """With the eye inside a glass sphere (`inside`), the index n moves the boundary of
+    total internal reflection (rays more than r/n from the centre are reflected) across
+    the image: the derivative of J = Σ w·image with respect to n against central
+    differences (±0.003) of the reference's 16 × 16 samples a pixel. Measured −215,729
+    against −216,541 (32 × 32 samples: −215,820); before the boundary was an edge of
+    the mode, +9,817."""
+    import copy
+
+    import jax
+    import jax.numpy as jnp
+
+    import rtjax
+
+    text, depth = DECKS["inside"]
+    s = rtjax.parse_deck(text).frames[0].scene.astype(jnp.float64)
+    w = np.random.default_rng(1).uniform(size=(s.structure.height, s.structure.width, 3))
+
+    def weighted(t):
+        return jnp.sum(w * rtjax.render(s.replace(ior=s.params.ior.at[1].add(t)), depth=depth, edges=1.0))
+
+    with quick_xla(clear=True):  # a tolerance check (conftest.quick_xla)
+        slope = float(jax.jvp(weighted, (0.0,), (1.0,))[1])
+
+    frame = reference.parse_deck_text(text)[0]
+
+    def reference_weighted(dn):
+        f = copy.deepcopy(frame)
+        f.spheres[1]["n"] += dn
+        return np.sum(w * reference.render_reference(f, depth=depth, spp=16))
+
+    truth = (reference_weighted(0.003) - reference_weighted(-0.003)) / 0.006
+    assert abs(slope - truth) <= 0.02 * abs(truth), (slope, truth)
