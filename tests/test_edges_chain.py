@@ -2,13 +2,13 @@
 edges (issue 21), against the supersampled finite differences of the independent float64
 reference renderer.
 
-Scenes (`edge_scenes.py`, 32–48 px): the issue's held-out-like scene (a floor, an
+Scenes (`edge_scenes.py`, 24–48 px): the issue's held-out-like scene (a floor, an
 opaque sphere, a mirror and a glass sphere, one light, shadows on the floor), spheres
 that cut into one another, a glass sphere of high index seen near its rim, a 32-px
-image whose pixels hold several edges, three opaque spheres on a floor (outlines
-over their own shadows), and the eye inside a glass sphere, where part of the view is
-totally reflected (its boundary an edge). Parameters: centres and radii of every sphere but the floor,
-and on the first scene the light's direction and the eye.
+image whose pixels hold several edges, three opaque spheres on a floor (outlines over
+their own shadows), and the eye inside a glass sphere, where part of the view is
+totally reflected (its boundary an edge). Parameters: centres and radii of every
+sphere but the floor, and on the first scene the light's direction and the eye.
 
 The yardstick, `tests/data/edges_yardstick.npz`, is made by `scripts/edges_yardstick.py`
 (about 45 minutes): central differences of `rtjax.reference` box-filtered from 64 × 64
