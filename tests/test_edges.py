@@ -368,6 +368,31 @@ def test_critical_boundary_is_where_the_reference_turns_to_total_internal_reflec
     np.testing.assert_allclose(delta[near], offset[near], atol=0.02)
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_critical_boundary_is_finite_at_its_singular_rays(dtype):
+    """`edges.critical_terms` and its derivatives in the sphere (centre, radius, index) and
+    the rays are finite where a ray passes through the centre (no direction to the
+    boundary: δ is `FAR`, not a division by 0) and exactly on the boundary (δ = 0)."""
+    from rtjax import edges
+
+    r, n = 10.0, 1.5
+    o = jnp.asarray([[0.0, -5.0], [0.0, r / n], [0.0, 0.0]], dtype)  # columns: the centre; r/n off it
+    d = jnp.asarray([[1.0, 1.0], [0.0, 0.0], [0.0, 0.0]], dtype)
+    turn = jnp.asarray([[0.0, 0.0], [0.01, 0.01], [0.0, 0.0]], dtype)
+    still = jnp.zeros_like(o)
+
+    def terms(c, radius, ior, o):
+        df = edges.Differentials(still, turn, still, still)
+        return edges.critical_terms(o, d, df, jnp.broadcast_to(c[:, None], o.shape), radius, ior)
+
+    args = (jnp.zeros(3, dtype), jnp.asarray(r, dtype), jnp.asarray(n, dtype), o)
+    (delta, nx, ny), tangents = jax.jvp(terms, args, tuple(jnp.ones_like(a) for a in args))
+    assert abs(float(delta[0])) == edges.FAR and abs(float(delta[1])) < 1e-5
+    grads = jax.grad(lambda *a: sum(jnp.sum(t) for t in terms(*a)), argnums=(0, 1, 2, 3))(*args)
+    for a in (delta, nx, ny, *tangents, *grads):
+        assert bool(jnp.all(jnp.isfinite(a))), a
+
+
 # --------------------------------------------------------------------------------------
 # (f) the blend's parts (`edge_samples`), what fitting at pixel centres uses
 
