@@ -364,11 +364,18 @@ class Best(NamedTuple):
 
     score: Float[Array, " p"]  # |δ| in sample steps (inf: none yet)
     edge: Int[Array, " p"]  # its sphere, or −1
-    on_hit: Bool[Array, " p"]  # the ray met that sphere (else it passed beside it)
     rays: object  # the chain's rays at that segment (`trace.Rays`, with their differentials), before it
     partner: Int[Array, " p"]  # an intersection curve: the sphere H the edge's sphere cuts into (else −1)
     nonlinear: "Bool[Array, ' p'] | None" = None  # watched: a shadow edge, terminator, narrow highlight or rim near a hit (`EdgeWatch`)
     critical: "Bool[Array, ' p'] | None" = None  # watched for: the edge is where its glass sphere's exit turns to TIR
+
+    def nearer(self, score, edge, partner, critical: bool) -> "Best":
+        """Per ray, this edge or the one given (its `score`, sphere, `partner` and whether
+        it is a TIR boundary), whichever scores lower."""
+        closer = score < self.score
+        return self._replace(score=jnp.where(closer, score, self.score), edge=jnp.where(closer, edge, self.edge),
+                             partner=jnp.where(closer, partner, self.partner),
+                             critical=None if self.critical is None else jnp.where(closer, critical, self.critical))
 
 
 class EdgeWatch:
@@ -395,7 +402,7 @@ class EdgeWatch:
         none = jnp.full(n, -1, jnp.int32)
         nonlinear = jnp.zeros(n, bool) if self.nonlinear else None
         critical = None if self.critical is None else jnp.zeros(n, bool)
-        return Best(jnp.full(n, jnp.inf, rays.o.dtype), none, jnp.zeros(n, bool), rays, none, nonlinear, critical)
+        return Best(jnp.full(n, jnp.inf, rays.o.dtype), none, rays, none, nonlinear, critical)
 
     def __call__(self, rays, hit: spheres.Hit, best: Best, near=None) -> Best:
         """`best` with this segment's nearest visible silhouette where it is nearer;
@@ -431,19 +438,14 @@ class EdgeWatch:
         score = jnp.where((edge >= 0) & (jnp.abs(delta) < self.width), jnp.abs(delta), jnp.inf)
         edge = jnp.where(jnp.isfinite(score), edge, -1)
         critical = None if self.critical is None else jnp.zeros_like(edge, bool)
-        here = Best(score, edge, hit.index == edge, rays, jnp.full_like(edge, -1), None, critical)
+        here = Best(score, edge, rays, jnp.full_like(edge, -1), None, critical)
         if self.curves:
             cscore, cedge = curves.nearest_curve(rays.o, rays.d, rays.diff, rays.origin, rays.weight > 0, hit, tab,
                                                  self.centers, self.radii, self.width)
-            nearer = cscore < here.score
-            here = here._replace(score=jnp.where(nearer, cscore, here.score), edge=jnp.where(nearer, cedge, here.edge),
-                                 on_hit=here.on_hit & ~nearer, partner=jnp.where(nearer, hit.index, -1))
+            here = here.nearer(cscore, cedge, hit.index, critical=False)
         if self.critical is not None:
-            tscore = self.critical.score(rays, hit, self.centers, self.radii, self.width)
-            nearer = tscore < here.score
-            here = here._replace(score=jnp.where(nearer, tscore, here.score),
-                                 edge=jnp.where(nearer, hit.index, here.edge), on_hit=here.on_hit & ~nearer,
-                                 partner=jnp.where(nearer, -1, here.partner), critical=nearer)
+            here = here.nearer(self.critical.score(rays, hit, self.centers, self.radii, self.width), hit.index, -1,
+                               critical=True)
         better = checkpoint_name(here.score < best.score, spheres.CHOICE)
         chosen = jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), here._replace(nonlinear=None),
                                         best._replace(nonlinear=None))
