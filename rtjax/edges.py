@@ -21,7 +21,9 @@ normal in the image. Two edges are handled that way:
   ray misses it).
 * Shadow edges, at every hit: a parallel light's shadow of a sphere is a cylinder, the
   shadow ray's distance to it is |l| − r, and the hit point's motion per pixel gives
-  its rate. The nearest occluder edge's hard factor (0 or kt²) becomes 1 − (1 − τ)·α.
+  its rate. The nearest occluder edge's hard factor (0 or kt²) becomes 1 − (1 − τ)·α;
+  in box mode the two nearest occluders' edges are both filtered (where one
+  occluder's shadow grazes another, their edges run a fraction of a pixel apart).
 
 Box mode also takes intersection curves of spheres cutting into one another
 (`rtjax.curves`) and the boundary of total internal reflection where a ray leaves a
@@ -242,13 +244,15 @@ class Shadow(NamedTuple):
     here: Float[Array, " p"]  # at the pixel: box-filtered (box mode) or at its centre (sided mode)
     there: Float[Array, " p"]  # sided mode: had the centre lain across its nearest shadow edge (else `here`)
     x: Float[Array, " p"]  # sided mode: the centre's distance to that edge in box widths (inf: none)
-    near: Bool[Array, " p"]  # that edge may cross the hit's box (within `CROSSING` boxes)
+    near: Bool[Array, " p"]  # an edge filtered (box mode: either) may cross the hit's box (within `CROSSING` boxes)
 
 
-def shadow_edge(hit: spheres.Hit, light, centers, radii, tmin, motion: Motion, width, tab: spheres.Table):
+def shadow_edge(hit: spheres.Hit, light, centers, radii, tmin, motion: Motion, width, tab: spheres.Table,
+                besides=None):
     """One light's nearest shadow edge within `width` sample steps of each hit: the
     occluder (or −1), the signed distance δ to its shadow cylinder in sample steps and
-    the edge's normal in the image (`soft_shadow`); `tab`: the hits' `light_table`."""
+    the edge's normal in the image (`soft_shadow`); `tab`: the hits' `light_table`;
+    `besides` (per hit, an occluder or −1): the nearest edge of another occluder."""
     n = centers.shape[0]
     ray = jnp.broadcast_to(light[:, None], hit.point.shape)
     still = jnp.zeros_like(ray)  # a parallel light: the shadow ray's direction does not move
@@ -256,6 +260,8 @@ def shadow_edge(hit: spheres.Hit, light, centers, radii, tmin, motion: Motion, w
     reach = safe_sqrt(sg(dot(motion.x, motion.x) + dot(motion.y, motion.y)), jnp.asarray(tiny(ray.dtype), ray.dtype))
     own = hit.index[None, :] == jnp.arange(n)[:, None]
     ahead = (-tab.b > tmin) & ~own & hit.found[None, :]
+    if besides is not None:
+        ahead = ahead & spheres.others(besides, n)
     edge = _candidates(jnp.sqrt(tab.l2) - sg(radii)[:, None], reach, ahead, width)
     c, r = _chosen_or_regular(edge, hit.point, ray, centers, radii)
     delta_e, nx, ny, _, _ = edge_terms(hit.point, ray, motion.x, still, motion.y, still, c, r)
@@ -263,34 +269,44 @@ def shadow_edge(hit: spheres.Hit, light, centers, radii, tmin, motion: Motion, w
 
 
 def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, motion: Motion, width, sided: bool) -> Shadow:
-    """Visibility of one light at each hit, its nearest shadow edge box-filtered.
+    """Visibility of one light at each hit, its two nearest shadow edges box-filtered.
 
-    The hard visibility of every other occluder times the soft factor 1 − (1 − τ)·α of
-    the nearest edge within reach (τ: 0, or kt² for glass; α: fraction of the pixel's
-    footprint on the surface inside that occluder's shadow cylinder). The hit's own
-    sphere stays hard: its terminator is already continuous in max(N·L, 0).
+    The hard visibility of every other occluder times the soft factors
+    1 − (1 − τ)·α of the two nearest edges within reach (τ: 0, or kt² for glass; α:
+    fraction of the pixel's footprint on the surface inside that occluder's shadow
+    cylinder; the footprint's share in both shadows taken as the product of its
+    shares): where one occluder's shadow cylinder grazes another, the two shadows'
+    edges run a fraction of a pixel apart, and the nearer alone would leave the other's
+    hard, its motion lost. The hit's own sphere stays hard: its terminator is already
+    continuous in max(N·L, 0).
 
-    `sided`: instead, the value at the pixel's centre (the edge's hard factor, no edge
-    derivative), the value had the centre lain on the edge's other side, and the
-    centre's distance to the edge in box widths (differentiable; inf where no edge is
-    within reach): what a target sampled at pixel centres needs (`rtjax.edge_samples`).
+    `sided`: instead, for the nearest edge, the value at the pixel's centre (the edge's
+    hard factor, no edge derivative), the value had the centre lain on the edge's other
+    side, and the centre's distance to the edge in box widths (differentiable; inf
+    where no edge is within reach): what a target sampled at pixel centres needs
+    (`rtjax.edge_samples`).
     """
     ray = jnp.broadcast_to(light[:, None], hit.point.shape)
     sg = jax.lax.stop_gradient
     tab = spheres.light_table(hit.point, light, centers)
     edge, delta_e, nx, ny = shadow_edge(hit, light, centers, radii, tmin, motion, width, tab)
-    hard = spheres.transmission(hit.point, ray, centers, radii, hit.index, tmin, factor, skip=edge, tab=tab)
     # |δ| ≥ width (a candidate only by the bound): α is 0 or 1, the hard factor exactly
     blocked = 1 - factor[jnp.maximum(edge, 0)]
     gap = jnp.abs(sg(delta_e))
     near = (edge >= 0) & (gap < CROSSING * width)
     if sided:
+        hard = spheres.transmission(hit.point, ray, centers, radii, hit.index, tmin, factor, skip=(edge,), tab=tab)
         inside = sg(delta_e) < 0
         reached = (edge >= 0) & (gap < width)
         here = jnp.where(edge >= 0, 1 - blocked * inside, 1)
         there = jnp.where(reached, 1 - blocked * ~inside, here)
         return Shadow(hard * here, hard * there, jnp.where(reached, jnp.abs(delta_e) / width, jnp.inf), near)
-    soft = hard * jnp.where(edge >= 0, 1 - blocked * coverage(-delta_e / width, nx, ny), 1)
+    edge2, delta2, nx2, ny2 = shadow_edge(hit, light, centers, radii, tmin, motion, width, tab, besides=edge)
+    hard = spheres.transmission(hit.point, ray, centers, radii, hit.index, tmin, factor, skip=(edge, edge2), tab=tab)
+    blocked2 = 1 - factor[jnp.maximum(edge2, 0)]
+    near = near | ((edge2 >= 0) & (jnp.abs(sg(delta2)) < CROSSING * width))
+    soft = (hard * jnp.where(edge >= 0, 1 - blocked * coverage(-delta_e / width, nx, ny), 1)
+            * jnp.where(edge2 >= 0, 1 - blocked2 * coverage(-delta2 / width, nx2, ny2), 1))
     return Shadow(soft, soft, jnp.full_like(soft, jnp.inf), near)
 
 

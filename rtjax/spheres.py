@@ -287,15 +287,15 @@ def nearest_hit(o, d, centers, radii, origin, tmin, cull: bool, toggles: Toggles
                live=found if active is None else found & active, table=tab)
 
 
-def transmission(o, d, centers, radii, origin, tmin, opacity_factor, skip=None, active=None, grid=None,
+def transmission(o, d, centers, radii, origin, tmin, opacity_factor, skip=(), active=None, grid=None,
                  tab: Table | None = None) -> Float[Array, " p"]:
     """Shadow visibility along parallel-light rays: Π over spheres met of their factor.
 
     `opacity_factor[j]` is 0 for opaque, mirror and textured spheres and kt² for glass
     (shadow rays pass straight through glass, weighted kt² per sphere, DECK.md §3).
     A sphere counts if the ray meets it ahead of the origin (its far root is ahead).
-    `skip` (per ray, a sphere index or −1) leaves one sphere out (the silhouette mode
-    accounts for it smoothly). `grid`: the `light_grid` of the direction d every ray
+    `skip` (per-ray sphere indices, or −1 for none) leaves those spheres out (the
+    silhouette mode accounts for their shadow edges smoothly). `grid`: the `light_grid` of the direction d every ray
     shares, for culled scenes (`culled_transmission`; `active` as in `nearest`); `tab`:
     the shadow rays' `table`, when the caller has it.
     """
@@ -303,8 +303,8 @@ def transmission(o, d, centers, radii, origin, tmin, opacity_factor, skip=None, 
         return culled_transmission(o, grid, centers, radii, origin, tmin, opacity_factor, skip, active)
     radii = jax.lax.stop_gradient(radii)
     _, blocked, _, _ = table_roots(table(o, d, centers) if tab is None else tab, radii, origin, tmin)
-    if skip is not None:
-        blocked = blocked & others(skip, centers.shape[0])
+    for k in skip:
+        blocked = blocked & others(k, centers.shape[0])
     factor = jnp.where(keep_blocked(blocked), opacity_factor[:, None], 1)
     return jnp.prod(factor, axis=0)
 
@@ -549,7 +549,7 @@ def _cell_of(grid: LightGrid, o):
     return i * side + j
 
 
-def culled_transmission(o, grid: LightGrid, centers, radii, origin, tmin, factor, skip=None, active=None):
+def culled_transmission(o, grid: LightGrid, centers, radii, origin, tmin, factor, skip=(), active=None):
     """`transmission` along `grid.light` through the grid: each active ray tests the
     spheres listed for its cell (the same factors met; inactive rays get 1)."""
     p = o.shape[1]
@@ -570,8 +570,8 @@ def culled_transmission(o, grid: LightGrid, centers, radii, origin, tmin, factor
         _, blocked, _, _ = pair_roots(oc, light[:, :, None], jnp.moveaxis(sph[..., :3], -1, 0), sph[..., 3],
                                        origin[at][:, None], cand, tmin)
         blocked = blocked & valid
-        if skip is not None:
-            blocked = blocked & (skip[at][:, None] != cand)
+        for s in skip:
+            blocked = blocked & (s[at][:, None] != cand)
         word = jnp.sum(jnp.where(blocked, bit, jnp.uint32(0)), axis=1, dtype=jnp.uint32)
         return bits.at[sel].set(word, mode="drop")
 
@@ -584,8 +584,8 @@ def culled_transmission(o, grid: LightGrid, centers, radii, origin, tmin, factor
     def all_spheres(_):
         d = jnp.broadcast_to(light, o.shape)
         _, blocked, _, _ = table_roots(table(o_sg, d, centers_sg), radii_sg, origin, tmin)
-        if skip is not None:
-            blocked = blocked & others(skip, centers.shape[0])
+        for k in skip:
+            blocked = blocked & others(k, centers.shape[0])
         return jnp.prod(jnp.where(blocked, factor[:, None], 1), axis=0)
 
     return jax.lax.cond(grid.over, all_spheres, listed, None)

@@ -77,20 +77,22 @@ GOALS = {
     "heldout": (0.9995, 0.05, 0.978),  # 0.9997, 3.4–4.0 %, 0.981 (eye z) (4 × 4: 0.9998, 2.8–2.9 %, 0.979; one box: 0.9973, 3.4–5.3 %, 0.821)
     "overlap": (0.9995, 0.03, 0.99),  # 0.9999, 1.7 %, 0.993 (glass) (4 × 4: 0.9964, 6.0–6.4 %, 0.955; one box: 0.9800, 13.8–16.2 %, 0.582)
     "tir": (0.9998, 0.025, 0.99),  # 0.9999, 1.0–1.3 %, 0.996 (4 × 4: 0.9998, 1.7–2.2 %, 0.991; one box: 0.9983, 11.0–11.3 %, 0.945)
-    "crowded": (0.9995, 0.03, 0.985),  # 0.9999, 1.5–1.6 %, 0.991 (glass x) (4 × 4: 0.9907, 19.6–20.2 %, 0.936; one box: 0.9891, 26.3–26.8 %, 0.742)
+    # since stop 64 (two shadow edges per footprint) 0.9995–0.9996, 2.8–3.3 %, 0.986: the
+    # glass's rim pixels lost a cancellation that had put their sums within 1.5–1.6 %
+    "crowded": (0.999, 0.035, 0.983),  # 0.9999, 1.5–1.6 %, 0.991 (glass x) (4 × 4: 0.9907, 19.6–20.2 %, 0.936; one box: 0.9891, 26.3–26.8 %, 0.742)
     "opaque": (0.9995, 0.03, 0.995),  # 1.0000, 0.6–1.4 %, 0.999 (4 × 4: 0.9997, 2.5–2.8 %, 0.997; one box: 0.9980, 7.8–8.8 %, 0.979)
     # since stop 63 (the boundary of total internal reflection an edge; before: −0.977, 71–80 %, 0.295)
     "inside": (0.9995, 0.02, 0.99),  # 1.0000, 0.3–1.1 %, 0.993 (one box: 1.0000, 4.4–4.6 %, 0.968)
 }
 # the same against the coarse yardsticks (the issue's own kind), whose per-pixel figures
 # their steps bound: measured heldout 0.9971, 3.6–12.9 %, 0.794; overlap 0.9837,
-# 2.5–2.8 %, 0.666; tir 0.9995, 2.5–4.1 %, 0.921; crowded 0.9995, 4.1–4.2 %, 0.859;
+# 2.5–2.8 %, 0.666; tir 0.9995, 2.5–4.1 %, 0.921; crowded 0.9991, 5.6–7.9 %, 0.860 (4.1–4.2 % before stop 64);
 # opaque 0.9994, 1.5–5.5 %, 0.925; inside 1.0000, 1.5–2.5 %, 0.570
 COARSE_GOALS = {
     "heldout": (0.996, 0.15, 0.78),
     "overlap": (0.98, 0.05, 0.65),
     "tir": (0.998, 0.06, 0.90),
-    "crowded": (0.999, 0.06, 0.84),
+    "crowded": (0.9985, 0.09, 0.84),
     "opaque": (0.999, 0.07, 0.91),
     "inside": (0.9995, 0.04, 0.55),
 }
@@ -176,6 +178,52 @@ def test_intersection_curves_are_edges(k, axis, floor):
     def image(t):
         c = s.params.centers.at[k, axis].add(t) if axis < 3 else s.params.centers
         r = s.params.radii.at[k].add(t) if axis == 3 else s.params.radii
+        return rtjax.render(s.replace(centers=c, radii=r), edges=1.0, depth=0)
+
+    jac = np.asarray(jax.jacfwd(image)(0.0))
+    cos = float(np.sum(jac * fd) / (np.linalg.norm(jac) * np.linalg.norm(fd)))
+    assert cos >= floor, cos
+
+
+# a glass ball shadowing an opaque one (fresh11 of docs/MEASUREMENTS.md, stop 64, at depth
+# 0 and 40 px): where the ball's shadow cylinder grazes the opaque sphere, the two
+# shadows' edges on the floor run a fraction of a sub-box apart. Per-pixel cosine of
+# jacfwd (`render`'s default, 16 × 16 sub-boxes) against the reference's central
+# difference (32 × 32 samples, 0.05 px) for the opaque sphere's (axis): measured 0.9981,
+# 0.9982, 0.9992 with both edges box-filtered; 0.9912, 0.9858, 0.9919 with the nearer
+# one alone (the other's shadow hard, its motion lost)
+SHADOWED = FLOOR + ("sphe -2 -4 -2 5\ntrpa 0.9 1.4 0.1 10\nsphe 3 6 -10 5\nopaq 0.8 0.7 0.6 0.3 10\n"
+                    "plig -0.4 -0.8 0.65 190 190 190\nelig 0.12\nback 40 50 70\neyep 20 -70 20\nrefp 0 0 -6\n"
+                    "vang 30 30\nsize 40\nrend x.ras\n")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("axis, floor", [(0, 0.996), (1, 0.996), (3, 0.997)])
+def test_two_shadow_edges_in_one_box(axis, floor):
+    import copy
+
+    import jax
+    import jax.numpy as jnp
+
+    import rtjax
+
+    s = rtjax.parse_deck(SHADOWED).frames[0].scene.astype(jnp.float64)
+    frame = reference.parse_deck_text(SHADOWED)[0]
+    h = 0.05 * np.linalg.norm(np.array([20, -70, 20]) - np.array([0, 0, -6])) * 2 * np.tan(np.radians(15)) / 40
+
+    def moved(e):
+        f = copy.deepcopy(frame)
+        if axis == 3:
+            f.spheres[2]["r"] += e
+        else:
+            f.spheres[2]["center"][axis] += e
+        return reference.render_reference(f, depth=0, spp=32)
+
+    fd = (moved(h) - moved(-h)) / (2 * h)
+
+    def image(t):
+        c = s.params.centers.at[2, axis].add(t) if axis < 3 else s.params.centers
+        r = s.params.radii.at[2].add(t) if axis == 3 else s.params.radii
         return rtjax.render(s.replace(centers=c, radii=r), edges=1.0, depth=0)
 
     jac = np.asarray(jax.jacfwd(image)(0.0))

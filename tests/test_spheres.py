@@ -151,10 +151,10 @@ def test_culled_nearest_and_transmission_equal_brute_force():
     for light in (np.array([0.5, 0.5, 2.0]), np.array([0.0, 0.0, -1.0]), np.array([1.0, 0.0, 0.0])):
         light = jnp.asarray(light / np.linalg.norm(light), jnp.float32)
         ray = jnp.broadcast_to(light[:, None], args[0].shape)
-        brute = np.asarray(spheres.transmission(args[0], ray, args[2], args[3], origin, tmin, factor, skip=exclude))
+        brute = np.asarray(spheres.transmission(args[0], ray, args[2], args[3], origin, tmin, factor, skip=(exclude,)))
         grid = spheres.light_grid(light, args[2], args[3], tmin)
         assert not bool(grid.over)
-        culled = np.asarray(spheres.transmission(args[0], ray, args[2], args[3], origin, tmin, factor, skip=exclude,
+        culled = np.asarray(spheres.transmission(args[0], ray, args[2], args[3], origin, tmin, factor, skip=(exclude,),
                                                  active=active, grid=grid))
         assert 0 < np.mean(brute[a] == 0) < 1
         np.testing.assert_array_equal(culled[a], brute[a])
