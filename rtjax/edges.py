@@ -289,25 +289,31 @@ def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, motion: M
     ray = jnp.broadcast_to(light[:, None], hit.point.shape)
     sg = jax.lax.stop_gradient
     tab = spheres.light_table(hit.point, light, centers)
-    edge, delta_e, nx, ny = shadow_edge(hit, light, centers, radii, tmin, motion, width, tab)
-    # |δ| ≥ width (a candidate only by the bound): α is 0 or 1, the hard factor exactly
-    blocked = 1 - factor[jnp.maximum(edge, 0)]
-    gap = jnp.abs(sg(delta_e))
-    near = (edge >= 0) & (gap < CROSSING * width)
+    first = shadow_edge(hit, light, centers, radii, tmin, motion, width, tab)
+    edge, delta_e = first[:2]
+
+    def blocked(e):  # what occluder e's shadow takes of the light (1, or 1 − kt² for glass)
+        return 1 - factor[jnp.maximum(e, 0)]
+
+    def near(e, delta):  # the edge may cross the box
+        return (e >= 0) & (jnp.abs(sg(delta)) < CROSSING * width)
+
     if sided:
         hard = spheres.transmission(hit.point, ray, centers, radii, hit.index, tmin, factor, skip=(edge,), tab=tab)
         inside = sg(delta_e) < 0
-        reached = (edge >= 0) & (gap < width)
-        here = jnp.where(edge >= 0, 1 - blocked * inside, 1)
-        there = jnp.where(reached, 1 - blocked * ~inside, here)
-        return Shadow(hard * here, hard * there, jnp.where(reached, jnp.abs(delta_e) / width, jnp.inf), near)
-    edge2, delta2, nx2, ny2 = shadow_edge(hit, light, centers, radii, tmin, motion, width, tab, besides=edge)
-    hard = spheres.transmission(hit.point, ray, centers, radii, hit.index, tmin, factor, skip=(edge, edge2), tab=tab)
-    blocked2 = 1 - factor[jnp.maximum(edge2, 0)]
-    near = near | ((edge2 >= 0) & (jnp.abs(sg(delta2)) < CROSSING * width))
-    soft = (hard * jnp.where(edge >= 0, 1 - blocked * coverage(-delta_e / width, nx, ny), 1)
-            * jnp.where(edge2 >= 0, 1 - blocked2 * coverage(-delta2 / width, nx2, ny2), 1))
-    return Shadow(soft, soft, jnp.full_like(soft, jnp.inf), near)
+        reached = (edge >= 0) & (jnp.abs(sg(delta_e)) < width)
+        here = jnp.where(edge >= 0, 1 - blocked(edge) * inside, 1)
+        there = jnp.where(reached, 1 - blocked(edge) * ~inside, here)
+        return Shadow(hard * here, hard * there, jnp.where(reached, jnp.abs(delta_e) / width, jnp.inf),
+                      near(edge, delta_e))
+    second = shadow_edge(hit, light, centers, radii, tmin, motion, width, tab, besides=edge)
+    # |δ| ≥ width (a candidate only by the bound): α is 0 or 1, the hard factor exactly
+    soft = spheres.transmission(hit.point, ray, centers, radii, hit.index, tmin, factor, skip=(edge, second[0]), tab=tab)
+    crossing = jnp.zeros_like(edge, bool)
+    for e, delta, nx, ny in (first, second):
+        soft = soft * jnp.where(e >= 0, 1 - blocked(e) * coverage(-delta / width, nx, ny), 1)
+        crossing = crossing | near(e, delta)
+    return Shadow(soft, soft, jnp.full_like(soft, jnp.inf), crossing)
 
 
 def near_terminator(nl, light, motion: Motion, radius, width):
