@@ -307,10 +307,9 @@ def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, motion: M
         return Shadow(hard * here, hard * there, jnp.where(reached, jnp.abs(delta_e) / width, jnp.inf),
                       near(edge, delta_e))
     second = shadow_edge(hit, light, centers, radii, tmin, motion, width, tab, besides=edge)
-    # |δ| ≥ width (a candidate only by the bound): α is 0 or 1, the hard factor exactly
     soft = spheres.transmission(hit.point, ray, centers, radii, hit.index, tmin, factor, skip=(edge, second[0]), tab=tab)
     crossing = jnp.zeros_like(edge, bool)
-    for e, delta, nx, ny in (first, second):
+    for e, delta, nx, ny in (first, second):  # |δ| ≥ width (a candidate by the bound only): α is 0 or 1
         soft = soft * jnp.where(e >= 0, 1 - blocked(e) * coverage(-delta / width, nx, ny), 1)
         crossing = crossing | near(e, delta)
     return Shadow(soft, soft, jnp.full_like(soft, jnp.inf), crossing)

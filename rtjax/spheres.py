@@ -295,9 +295,9 @@ def transmission(o, d, centers, radii, origin, tmin, opacity_factor, skip=(), ac
     (shadow rays pass straight through glass, weighted kt² per sphere, DECK.md §3).
     A sphere counts if the ray meets it ahead of the origin (its far root is ahead).
     `skip` (per-ray sphere indices, or −1 for none) leaves those spheres out (the
-    silhouette mode accounts for their shadow edges smoothly). `grid`: the `light_grid` of the direction d every ray
-    shares, for culled scenes (`culled_transmission`; `active` as in `nearest`); `tab`:
-    the shadow rays' `table`, when the caller has it.
+    silhouette mode accounts for their shadow edges smoothly). `grid`: the `light_grid`
+    of the direction d every ray shares, for culled scenes (`culled_transmission`;
+    `active` as in `nearest`); `tab`: the shadow rays' `table`, when the caller has it.
     """
     if grid is not None:
         return culled_transmission(o, grid, centers, radii, origin, tmin, opacity_factor, skip, active)

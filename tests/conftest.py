@@ -31,8 +31,9 @@ import pytest  # noqa: E402
 
 
 @contextlib.contextmanager
-def quick_xla(clear: bool = False):
-    """Compile what runs inside with `jax_disable_most_optimizations`: for checks of
+def quick_xla(clear: bool = False, quick: bool = True):
+    """Compile what runs inside with `jax_disable_most_optimizations` (`quick=False`:
+    without, inside a module that runs under it): for checks of
     finiteness, tolerances or plumbing whose cost is XLA compile time (a jvp and a vjp
     of the silhouette-aware render take XLA tens of seconds per dtype), not for checks
     of bit-for-bit equality nor for timings.
@@ -57,7 +58,7 @@ def quick_xla(clear: bool = False):
     functions called nowhere else, or with `clear=True` (JAX's caches cleared on exit).
     """
     before = jax.config.read("jax_disable_most_optimizations")
-    jax.config.update("jax_disable_most_optimizations", True)
+    jax.config.update("jax_disable_most_optimizations", quick)
     try:
         yield
     finally:

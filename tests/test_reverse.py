@@ -26,7 +26,7 @@ import pytest
 
 import rtjax
 
-from conftest import SCENES
+from conftest import SCENES, quick_xla
 
 pytestmark = pytest.mark.usefixtures("quick_build")
 
@@ -133,7 +133,11 @@ def test_reverse_equals_forward_on_the_sample_deck(edges, size):
     the two sides disagreed by 1e-3 to 1e-1 relative, with or without the checkpoint.
     One box (`subdivide=0`; at 40 px `render`'s default is 4 × 4 sub-boxes, whose
     derivative in `diffuse` still meets a tie that XLA's quick build and its optimised
-    one break differently: docs/MEASUREMENTS.md, 2026-12-06 stop 55)."""
+    one break differently: docs/MEASUREMENTS.md, 2026-12-06 stop 55). The silhouette
+    mode runs in the optimised build: in the quick one its checkpointed recomputation
+    rounds unlike its primal, and with two shadow edges per footprint (stop 64) the
+    sides disagreed by 1e-4 to 5e-3 relative at 36, 40 and 44 px (at 44 px before
+    too), where the optimised build agrees to 2e-15."""
     with open(os.path.join(SCENES, "ex2s3.dat")) as f:
         s = rtjax.parse_deck(f.read()).frames[0].scene.resized(size).astype(jnp.float64)
     p = s.params
@@ -141,7 +145,8 @@ def test_reverse_equals_forward_on_the_sample_deck(edges, size):
     def image(p):
         return rtjax.render(rtjax.Scene(s.structure, p), edges=edges, subdivide=0)
 
-    assert_dot_products(image, p, s.structure, least=1.0)
+    with quick_xla(clear=True, quick=edges == 0):
+        assert_dot_products(image, p, s.structure, least=1.0)
 
 
 @pytest.mark.slow
