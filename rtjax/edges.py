@@ -199,7 +199,13 @@ def _chosen_or_regular(edge, o, d, centers, radii):
 
 def _candidates(gap, reach, ok, width: float):
     """Per ray, the sphere whose edge is nearest in sample steps among the `ok` ones
-    within `width` steps, or −1.
+    within `width` steps, or −1 (`_scores`)."""
+    return _nearest(_scores(gap, reach, ok, width))
+
+
+def _scores(gap, reach, ok, width: float):
+    """Per sphere and ray, a lower bound of the distance to the sphere's edge in sample
+    steps where the sphere is `ok` and the bound within `width`, else inf.
 
     The exact distance δ needs each sphere's own edge normal; `gap` (per ray and
     sphere: |l| − r for a shadow cylinder, the angular gap for an outline) over `reach`
@@ -209,7 +215,7 @@ def _candidates(gap, reach, ok, width: float):
     several edges within reach follows the bound (they agree up to the footprint's
     shape)."""
     bound = jnp.abs(gap) / reach
-    return _nearest(jnp.where(ok & (bound < width), bound, jnp.inf))
+    return jnp.where(ok & (bound < width), bound, jnp.inf)
 
 
 def _nearest(score):
@@ -247,12 +253,20 @@ class Shadow(NamedTuple):
     near: Bool[Array, " p"]  # an edge filtered (box mode: either) may cross the hit's box (within `CROSSING` boxes)
 
 
-def shadow_edge(hit: spheres.Hit, light, centers, radii, tmin, motion: Motion, width, tab: spheres.Table,
-                besides=None):
-    """One light's nearest shadow edge within `width` sample steps of each hit: the
-    occluder (or −1), the signed distance δ to its shadow cylinder in sample steps and
-    the edge's normal in the image (`soft_shadow`); `tab`: the hits' `light_table`;
-    `besides` (per hit, an occluder or −1): the nearest edge of another occluder."""
+class ShadowEdge(NamedTuple):
+    """One light's shadow edge at each hit (`shadow_edges`)."""
+
+    occluder: Int[Array, " p"]  # the occluder whose shadow cylinder it is, or −1 (none within reach)
+    delta: Float[Array, " p"]  # the hit's signed distance to that cylinder, in sample steps
+    nx: Float[Array, " p"]  # the edge's normal in the image
+    ny: Float[Array, " p"]
+
+
+def shadow_edges(hit: spheres.Hit, light, centers, radii, tmin, motion: Motion, width, tab: spheres.Table,
+                 count: int) -> tuple[ShadowEdge, ...]:
+    """One light's `count` nearest shadow edges within `width` sample steps of each hit,
+    nearest first, each of another occluder (`soft_shadow`); `tab`: the hits'
+    `light_table`. The bounds that choose them are taken once for all `count`."""
     n = centers.shape[0]
     ray = jnp.broadcast_to(light[:, None], hit.point.shape)
     still = jnp.zeros_like(ray)  # a parallel light: the shadow ray's direction does not move
@@ -260,12 +274,15 @@ def shadow_edge(hit: spheres.Hit, light, centers, radii, tmin, motion: Motion, w
     reach = safe_sqrt(sg(dot(motion.x, motion.x) + dot(motion.y, motion.y)), jnp.asarray(tiny(ray.dtype), ray.dtype))
     own = hit.index[None, :] == jnp.arange(n)[:, None]
     ahead = (-tab.b > tmin) & ~own & hit.found[None, :]
-    if besides is not None:
-        ahead = ahead & spheres.others(besides, n)
-    edge = _candidates(jnp.sqrt(tab.l2) - sg(radii)[:, None], reach, ahead, width)
-    c, r = _chosen_or_regular(edge, hit.point, ray, centers, radii)
-    delta_e, nx, ny, _, _ = edge_terms(hit.point, ray, motion.x, still, motion.y, still, c, r)
-    return edge, delta_e, nx, ny
+    score = _scores(jnp.sqrt(tab.l2) - sg(radii)[:, None], reach, ahead, width)
+    found = []
+    for _ in range(count):
+        edge = _nearest(score)
+        score = jnp.where(spheres.others(edge, n), score, jnp.inf)
+        c, r = _chosen_or_regular(edge, hit.point, ray, centers, radii)
+        delta, nx, ny, _, _ = edge_terms(hit.point, ray, motion.x, still, motion.y, still, c, r)
+        found.append(ShadowEdge(edge, delta, nx, ny))
+    return tuple(found)
 
 
 def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, motion: Motion, width, sided: bool) -> Shadow:
@@ -289,8 +306,7 @@ def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, motion: M
     ray = jnp.broadcast_to(light[:, None], hit.point.shape)
     sg = jax.lax.stop_gradient
     tab = spheres.light_table(hit.point, light, centers)
-    first = shadow_edge(hit, light, centers, radii, tmin, motion, width, tab)
-    edge, delta_e = first[:2]
+    found = shadow_edges(hit, light, centers, radii, tmin, motion, width, tab, 1 if sided else 2)
 
     def blocked(e):  # what occluder e's shadow takes of the light (1, or 1 − kt² for glass)
         return 1 - factor[jnp.maximum(e, 0)]
@@ -298,18 +314,19 @@ def soft_shadow(hit: spheres.Hit, light, centers, radii, tmin, factor, motion: M
     def near(e, delta):  # the edge may cross the box
         return (e >= 0) & (jnp.abs(sg(delta)) < CROSSING * width)
 
+    skip = tuple(f.occluder for f in found)
+    hard = spheres.transmission(hit.point, ray, centers, radii, hit.index, tmin, factor, skip=skip, tab=tab)
     if sided:
-        hard = spheres.transmission(hit.point, ray, centers, radii, hit.index, tmin, factor, skip=(edge,), tab=tab)
+        (edge, delta_e, _, _), = found
         inside = sg(delta_e) < 0
         reached = (edge >= 0) & (jnp.abs(sg(delta_e)) < width)
         here = jnp.where(edge >= 0, 1 - blocked(edge) * inside, 1)
         there = jnp.where(reached, 1 - blocked(edge) * ~inside, here)
         return Shadow(hard * here, hard * there, jnp.where(reached, jnp.abs(delta_e) / width, jnp.inf),
                       near(edge, delta_e))
-    second = shadow_edge(hit, light, centers, radii, tmin, motion, width, tab, besides=edge)
-    soft = spheres.transmission(hit.point, ray, centers, radii, hit.index, tmin, factor, skip=(edge, second[0]), tab=tab)
-    crossing = jnp.zeros_like(edge, bool)
-    for e, delta, nx, ny in (first, second):  # |δ| ≥ width (a candidate by the bound only): α is 0 or 1
+    soft = hard
+    crossing = jnp.zeros_like(skip[0], bool)
+    for e, delta, nx, ny in found:  # |δ| ≥ width (a candidate by the bound only): α is 0 or 1
         soft = soft * jnp.where(e >= 0, 1 - blocked(e) * coverage(-delta / width, nx, ny), 1)
         crossing = crossing | near(e, delta)
     return Shadow(soft, soft, jnp.full_like(soft, jnp.inf), crossing)
