@@ -129,3 +129,18 @@ def take_rows(table, idx):
     `table.T[:, idx]` gathers (P, 3) and transposes it; on XLA's CPU backend those
     transposes and their reverse-mode copies took 7–10 % of a gradient's time."""
     return jnp.stack([lookup(table[:, k], idx) for k in range(table.shape[1])])
+
+
+#: The range of a colour channel (0..255): `clamp_colour`.
+COLOUR_MAX = 255.0
+
+
+def clamp_colour(x):
+    """x clamped to 0..`COLOUR_MAX`, its derivative 1 on the closed range and 0 beyond.
+
+    A channel often sits exactly at 0 (a diffuse colour with a zero channel, no
+    highlight): `jnp.clip` halves the derivative at such a tie, and two programs of the
+    same render (its jvp, its vjp) that round the value to 0 or just above it then
+    disagree by a factor of 2. On the closed range the bound takes the inside's
+    derivative, whatever rounding put it there."""
+    return jnp.where((x >= 0) & (x <= COLOUR_MAX), x, jnp.clip(x, 0, COLOUR_MAX))

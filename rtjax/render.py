@@ -15,6 +15,7 @@ from .camera import pixel_grid, rays_through, subpixel_offsets
 from .compact import pack
 from .edges import RIM, Differentials, EdgeSamples, edge_pixels
 from .errors import RtjaxError
+from .numerics import clamp_colour
 from .scene import Params, Scene, Structure
 from .spheres import coherent_order
 from .trace import BOX, LEVEL, PLAIN, SIDED, Mode, tiled, trace, trace_edges
@@ -254,7 +255,7 @@ def image_edges(s: Structure, p: Params, offset, step, options: Options, reach: 
     chunk = min(options.tile, max(EDGE_CHUNK_MIN, -(-n // EDGE_CHUNKS)))
     blended = colours_at(s, p, packed.gather(xy), step, options.depth, chunk, BOX, options.edges, capacity=chunk,
                          count=packed.count, subdivide=options.subdivide)
-    return packed.scatter(jnp.clip(colour, 0, 255), blended)
+    return packed.scatter(clamp_colour(colour), blended)
 
 
 def _differentials(s: Structure, p: Params, xy, step):
@@ -282,7 +283,7 @@ def colours_at(s: Structure, p: Params, xy, step, depth: int, tile: int, mode: M
     the box mode's halvings of the box in the pixels an edge may cross (`trace.trace_edges`)."""
     if mode == PLAIN:
         o, d = rays_through(p.eye, p.refp, p.vang, s.width, s.height, xy)
-        return jnp.clip(tiled(lambda o, d: trace(s, p, o, d, depth).colour, tile, o, d), 0, 255)
+        return clamp_colour(tiled(lambda o, d: trace(s, p, o, d, depth).colour, tile, o, d))
 
     def run(o, d, diff):
         return trace_edges(s, p, o, d, diff, depth, width, BOX, capacity, subdivide).blended

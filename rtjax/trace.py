@@ -28,7 +28,7 @@ from jaxtyping import Array, Bool, Float, Int, UInt
 
 from . import edges, occlusion, spheres
 from .compact import pack
-from .numerics import dot, lookup, normalize, safe_sqrt, spread, take_rows
+from .numerics import clamp_colour, dot, lookup, normalize, safe_sqrt, spread, take_rows
 from .scene import GLASS, MIRROR, OPAQUE, TEXTURE, Params, Structure
 from .shading import fresnel_reflectance, local_light, phong_angles
 from .textures import textured_diffuse
@@ -454,7 +454,7 @@ def _edge_pass(s: Structure, p: Params, primary, depth: int, width, mode: Mode, 
     if live is not None:
         first = first._replace(weight=jnp.where(jnp.arange(n) < live, first.weight, 0))
     rays, best = _chain(s, p, m, first, depth, mode, width, watch=watch)
-    centre = jnp.clip(rays.colour, 0, 255)
+    centre = clamp_colour(rays.colour)
     packed = pack(best.edge >= 0, capacity)
     b = packed.gather(best)
     r0 = b.rays
@@ -482,10 +482,10 @@ def _edge_pass(s: Structure, p: Params, primary, depth: int, width, mode: Mode, 
         toggles = spheres.Toggles(two(none, side.edge), two(side.edge, none))
     colour = tiled(lambda r, t: _chain(s, p, m, r, depth, mode, width, t)[0].colour, -(-2 * capacity // tiles),
                    start, toggles, count=2 * packed.count, checkpointed=False)
-    inside, outside = jnp.moveaxis(jnp.clip(colour, 0, 255).reshape(3, capacity, 2), -1, 0)
+    inside, outside = jnp.moveaxis(clamp_colour(colour).reshape(3, capacity, 2), -1, 0)
     blended = packed.scatter(centre, spread(side.alpha) * inside + spread(1 - side.alpha) * outside)
     if mode == SIDED:
-        flipped, shadow_x = jnp.clip(rays.colour + rays.flip.delta, 0, 255), rays.flip.x
+        flipped, shadow_x = clamp_colour(rays.colour + rays.flip.delta), rays.flip.x
     else:
         flipped, shadow_x = centre, jnp.full((n,), jnp.inf, centre.dtype)
     samples = edges.EdgeSamples(centre=centre, blended=blended,

@@ -253,3 +253,26 @@ def test_lookup_derivatives_equal_a_gathers(n):
     np.testing.assert_allclose(grad, expected, rtol=1e-12, atol=1e-12)
     text = jax.jit(jax.grad(lambda t: jnp.sum(weights * looked_up(t)))).lower(table).as_text()
     assert ("scatter" in text) == (n > numerics.LOOKUP_ONE_HOT_MAX)
+
+
+@pytest.mark.parametrize("edges", [0.0, 1.0])
+def test_a_channel_at_zero_takes_the_inside_derivative(edges):
+    """A diffuse colour with a zero channel and no highlight puts that channel exactly at
+    the clamp's lower bound on the whole sphere: forward and reverse mode both give the
+    derivative into the range, the forward difference's (the channel is linear in the
+    colour there). `jnp.clip` halved it at that tie, and the render's jvp and vjp, which
+    round the channel to 0 or just above it, disagreed by a factor of 2
+    (test_reverse's sample deck)."""
+    deck = "sphe 0 0 0 10\nopaq 0.9 0.6 0 0 1\nplig -0.5 -1 0.8 150 140 130\nback 20 30 60\nelig 0.15\n" + CAMERA
+    s = rtjax.parse_deck(deck).frames[0].scene.astype(jnp.float64)
+
+    def blue(b):
+        return rtjax.render(s.replace(diffuse=s.params.diffuse.at[0, 2].set(b)), edges=edges)[..., 2]
+
+    h = 1e-3
+    fd = (np.asarray(blue(h)) - np.asarray(blue(0.0))) / h
+    assert np.count_nonzero(fd > 1) > 50  # the sphere's lit pixels
+    tangent = np.asarray(jax.jvp(blue, (0.0,), (1.0,))[1])
+    np.testing.assert_allclose(tangent, fd, rtol=1e-7, atol=1e-7)
+    w = np.random.default_rng(0).uniform(0, 1, fd.shape)
+    assert float(jax.grad(lambda b: jnp.sum(blue(b) * w))(0.0)) == pytest.approx(float(np.sum(fd * w)), rel=1e-7)
