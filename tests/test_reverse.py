@@ -135,14 +135,8 @@ def test_reverse_equals_forward_on_the_sample_deck(edges, size):
     derivative in `diffuse` still meets a tie that XLA's quick build and its optimised
     one break differently: docs/MEASUREMENTS.md, 2026-12-06 stop 55). The silhouette
     mode runs in the optimised build: in the quick one its checkpointed recomputation
-    rounds unlike its primal, and with two shadow edges per footprint (stop 64) the
-    sides disagreed by 1e-4 to 5e-3 relative at 36, 40 and 44 px (at 44 px before
-    too; at 40 px pixel (18, 8), whose vjp has no derivative in `diffuse`), where the
-    optimised build agrees to 2e-14. There they once disagreed by 1e-3 after a change
-    that left the images bit for bit the same (stop 65): pixel (15, 16)'s blue channel,
-    exactly 0 (a diffuse colour without blue), was 0 in the jvp and 2e-35 in the vjp,
-    where `jnp.clip` gave half and all of its derivative (the clamp now gives all:
-    `numerics.clamp_colour`)."""
+    rounds unlike its primal and takes another discrete choice in a few pixels (the two
+    sides 1e-4 to 5e-3 apart; docs/MEASUREMENTS.md, stops 64 and 65)."""
     with open(os.path.join(SCENES, "ex2s3.dat")) as f:
         s = rtjax.parse_deck(f.read()).frames[0].scene.resized(size).astype(jnp.float64)
     p = s.params
