@@ -46,7 +46,7 @@ from jax.ad_checkpoint import checkpoint_name
 from jaxtyping import Array, Bool, Float, Int
 
 from . import curves, spheres
-from .numerics import dot, lookup, normalize, safe_div, safe_sqrt, spread, take_rows, tiny
+from .numerics import clamp, dot, lookup, normalize, safe_div, safe_sqrt, spread, take_rows, tiny
 
 #: Smallest |component| of an edge's normal used in the box filter: keeps the
 #: trapezoid formula's division well conditioned for axis-aligned edges.
@@ -73,10 +73,14 @@ def coverage(x, a, b):
     positive inside; (a, b): the edge normal's components in the image. The fraction is
     the CDF F of z = a·U₁ + b·U₂ for U uniform on [−½, ½]: a trapezoid's integral, C¹.
     x is clamped to the trapezoid's support [−s, s] (F is 0 or 1 beyond it): the ramps'
-    squares would cancel catastrophically at a far edge (`FAR`).
+    squares would cancel catastrophically at a far edge (`FAR`). F is bounded to
+    [0, 1]: at the support's ends rounding puts it just past them, and a visibility of
+    1 − F a rounding error below 0 would leave a channel it scales (a highlight where
+    the diffuse colour has none) just below 0, where `clamp_colour` drops the channel's
+    derivative.
     """
     s, e, ab = _trapezoid(a, b)
-    return _ramps(jnp.clip(x, -s, s), s, e, 2) / (2 * ab)
+    return clamp(_ramps(jnp.clip(x, -s, s), s, e, 2) / (2 * ab), 0, 1)
 
 
 def split_box(x, a, b):
@@ -88,8 +92,8 @@ def split_box(x, a, b):
     s, e, ab = _trapezoid(a, b)
     x = jnp.clip(x, -s, s)  # as in `coverage`: beyond, the box lies on one side
 
-    def f(y):
-        return _ramps(y, s, e, 2) / (2 * ab)
+    def f(y):  # as `coverage`
+        return clamp(_ramps(y, s, e, 2) / (2 * ab), 0, 1)
 
     def g(y):
         return _ramps(y, s, e, 3) / (6 * ab)

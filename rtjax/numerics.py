@@ -135,12 +135,18 @@ def take_rows(table, idx):
 COLOUR_MAX = 255.0
 
 
-def clamp_colour(x):
-    """x clamped to 0..`COLOUR_MAX`, its derivative 1 on the closed range and 0 beyond.
+def clamp(x, lo, hi):
+    """x clamped to [lo, hi], its derivative 1 on the closed range and 0 beyond.
 
-    A channel often sits exactly at 0 (a diffuse colour with a zero channel, no
-    highlight): `jnp.clip` halves the derivative at such a tie, and two programs of the
-    same render (its jvp, its vjp) that round the value to 0 or just above it then
-    disagree by a factor of 2. On the closed range the bound takes the inside's
-    derivative, whatever rounding put it there."""
-    return jnp.where((x >= 0) & (x <= COLOUR_MAX), x, jnp.clip(x, 0, COLOUR_MAX))
+    A value often sits exactly at a bound, or a rounding error past it (a colour
+    channel at 0 where a diffuse colour lacks it, a box's coverage at 1 where an edge
+    just leaves it): `jnp.clip` halves the derivative at such a tie, and two programs
+    of the same render (its jvp, its vjp) that round the value onto the bound or just
+    inside it then disagree by a factor of 2. On the closed range the bound takes the
+    inside's derivative, whatever rounding put it there."""
+    return jnp.where((x >= lo) & (x <= hi), x, jnp.clip(x, lo, hi))
+
+
+def clamp_colour(x):
+    """x clamped to 0..`COLOUR_MAX` (`clamp`)."""
+    return clamp(x, 0, COLOUR_MAX)

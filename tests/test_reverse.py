@@ -26,7 +26,7 @@ import pytest
 
 import rtjax
 
-from conftest import SCENES, quick_xla
+from conftest import SCENES
 
 pytestmark = pytest.mark.usefixtures("quick_build")
 
@@ -42,18 +42,6 @@ DECK = (
     "eyep 7 -60 10\nrefp 0.5 0 0.3\nvang 42 32\nsize 32\nrend x.ras\n"
 )
 DEPTH = 4
-#: `DECK`'s mirror and opaque sphere alone, one light, 16 × 12 pixels: the silhouette
-#: mode's sub-boxes compile a second copy of both passes, so their reverse-mode check
-#: takes a smaller structure (a mirror still).
-MIRROR_DECK = (
-    "sphe 0 0 0 12\nmirr\n"
-    "sphe -13 -11 6 4\nopaq 0.8 0.3 0.2 0.4 8\n"
-    "plig -0.5 -1 0.8 120 110 100\n"
-    "back 20 30 60\nelig 0.2\n"
-    "eyep 7 -60 10\nrefp 0.5 0 0.3\nvang 42 32\nsize 16\nrend x.ras\n"
-)
-
-
 @functools.lru_cache(maxsize=None)
 def scene() -> rtjax.Scene:
     return rtjax.parse_deck(DECK).frames[0].scene.astype(jnp.float64)
@@ -88,23 +76,6 @@ def assert_dot_products(image, p, structure, least: float) -> np.ndarray:
 
 
 @pytest.mark.slow
-def test_reverse_equals_forward_with_sub_boxes():
-    """The silhouette mode with its sub-boxes (2 × 2, the same
-    program as the 4 × 4 of `render`'s default on an image this small, at half its
-    cost here): reverse mode equals forward mode (dot products, float64), on a mirror
-    scene where the sub-boxes change the image."""
-    s = rtjax.parse_deck(MIRROR_DECK).frames[0].scene.astype(jnp.float64)
-    p = s.params
-
-    def image(p):
-        return rtjax.render(rtjax.Scene(s.structure, p), depth=1, edges=1.0, subdivide=1)
-
-    subdivided = assert_dot_products(image, p, s.structure, least=1e-3)
-    one_box = np.asarray(rtjax.render(s, depth=1, edges=1.0, subdivide=0))
-    assert np.abs(subdivided - one_box).max() > 0.5, "no pixel of the scene is subdivided"
-
-
-@pytest.mark.slow
 @pytest.mark.parametrize("edges", [0.0])
 def test_reverse_equals_forward_through_mirror_and_glass(edges):
     """⟨Jᵀc, t⟩ = ⟨c, J t⟩ for a random cotangent c and random tangents t over all
@@ -125,27 +96,23 @@ def test_reverse_equals_forward_through_mirror_and_glass(edges):
 @pytest.mark.parametrize("edges, size", [(0.0, 96), (1.0, 40)])
 def test_reverse_equals_forward_on_the_sample_deck(edges, size):
     """The same dot-product test on the sample deck, its own depth (10): two mirrors and
-    three glass spheres through the checkpointed chain. In the silhouette-aware mode
-    (40 px: every pixel traced in the mode) its grazing hits on the inside of mirror
-    and glass silhouettes once left the path to rounding (refraction or TIR exactly at
-    the critical angle, a tangent ray meeting its own sphere again, the side of a
-    grazing hit's motion), which differs between the compiled image, jvp and vjp: there
-    the two sides disagreed by 1e-3 to 1e-1 relative, with or without the checkpoint.
-    One box (`subdivide=0`; at 40 px `render`'s default is 4 × 4 sub-boxes, whose
-    derivative in `diffuse` still meets a tie that XLA's quick build and its optimised
-    one break differently: docs/MEASUREMENTS.md, 2026-12-06 stop 55). The silhouette
-    mode runs in the optimised build: in the quick one its checkpointed recomputation
-    rounds unlike its primal and takes another discrete choice in a few pixels (the two
-    sides 1e-4 to 5e-3 apart; docs/MEASUREMENTS.md, stops 64 and 65)."""
+    three glass spheres through the checkpointed chain. In the silhouette-aware mode at
+    40 px every pixel is traced in the mode, with `render`'s default sub-boxes (16 × 16
+    where edges are, in two levels: they change the image), through the grazing hits on
+    the inside of mirror and glass silhouettes and the ends of shadow edges' boxes,
+    where rounding alone once chose between two paths or derivatives differently in the
+    image, its jvp and its vjp (docs/MEASUREMENTS.md, stops 55, 64–66)."""
     with open(os.path.join(SCENES, "ex2s3.dat")) as f:
         s = rtjax.parse_deck(f.read()).frames[0].scene.resized(size).astype(jnp.float64)
     p = s.params
 
     def image(p):
-        return rtjax.render(rtjax.Scene(s.structure, p), edges=edges, subdivide=0)
+        return rtjax.render(rtjax.Scene(s.structure, p), edges=edges)
 
-    with quick_xla(clear=True, quick=edges == 0):
-        assert_dot_products(image, p, s.structure, least=1.0)
+    out = assert_dot_products(image, p, s.structure, least=1.0)
+    if edges:
+        one_box = np.asarray(rtjax.render(s, edges=edges, subdivide=0))
+        assert np.abs(out - one_box).max() > 0.5, "no pixel of the sample deck is subdivided"
 
 
 @pytest.mark.slow
