@@ -42,6 +42,8 @@ DECK = (
     "eyep 7 -60 10\nrefp 0.5 0 0.3\nvang 42 32\nsize 32\nrend x.ras\n"
 )
 DEPTH = 4
+
+
 @functools.lru_cache(maxsize=None)
 def scene() -> rtjax.Scene:
     return rtjax.parse_deck(DECK).frames[0].scene.astype(jnp.float64)
