@@ -159,9 +159,11 @@ def hit_key(key, hit: spheres.Hit, visibility, live):
 
 #: Floor of √k's slope in Snell's law (k = 0: the critical angle), per dtype.
 TIR_SLOPE_FLOOR = {jnp.dtype(jnp.float32): 1e-8, jnp.dtype(jnp.float64): 1e-16}
-#: |k| below which Snell's k counts as 0 (exactly at the critical angle), per dtype: well
-#: above k's rounding, far below any k a ray not grazing its way in meets.
-CRITICAL_BAND = {jnp.dtype(jnp.float32): 1e-4, jnp.dtype(jnp.float64): 1e-10}
+#: |k| below which Snell's k counts as 0 (exactly at the critical angle), per dtype: above
+#: k's rounding at the silhouette mode's grazing hits, far below any k a ray not grazing
+#: its way in meets. Narrow, since it moves the boundary of total internal reflection by
+#: the band over k's rate, which 16 × 16 sub-boxes resolve (docs/MEASUREMENTS.md, stop 66).
+CRITICAL_BAND = {jnp.dtype(jnp.float32): 1e-5, jnp.dtype(jnp.float64): 1e-10}
 
 
 def next_direction(s: Structure, p: Params, idx, d, n, entering):
