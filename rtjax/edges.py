@@ -66,6 +66,11 @@ def _ramps(x, s, e, power):
     return ramp(x + s) - ramp(x + e) - ramp(x - e) + ramp(x - s)
 
 
+def _cdf(y, s, e, ab):
+    """`coverage`'s F at y in the support [−s, s], bounded to [0, 1]."""
+    return clamp(_ramps(y, s, e, 2) / (2 * ab), 0, 1)
+
+
 def coverage(x, a, b):
     """Fraction of a unit square on the inner side of a straight edge.
 
@@ -80,7 +85,7 @@ def coverage(x, a, b):
     derivative.
     """
     s, e, ab = _trapezoid(a, b)
-    return clamp(_ramps(jnp.clip(x, -s, s), s, e, 2) / (2 * ab), 0, 1)
+    return _cdf(jnp.clip(x, -s, s), s, e, ab)
 
 
 def split_box(x, a, b):
@@ -92,15 +97,12 @@ def split_box(x, a, b):
     s, e, ab = _trapezoid(a, b)
     x = jnp.clip(x, -s, s)  # as in `coverage`: beyond, the box lies on one side
 
-    def f(y):  # as `coverage`
-        return clamp(_ramps(y, s, e, 2) / (2 * ab), 0, 1)
-
     def g(y):
         return _ramps(y, s, e, 3) / (6 * ab)
 
-    alpha = f(x)
+    alpha = _cdf(x, s, e, ab)
     inside = jnp.clip(safe_div(g(x), alpha) - x, -s, s)
-    outside = jnp.clip(-x - safe_div(g(-x), f(-x)), -s, s)
+    outside = jnp.clip(-x - safe_div(g(-x), _cdf(-x, s, e, ab)), -s, s)
     return alpha, inside, outside
 
 
